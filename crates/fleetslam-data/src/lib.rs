@@ -1,0 +1,3 @@
+//! fleetslam-data: everything around the filter that reads or writes files.
+
+pub mod formats;

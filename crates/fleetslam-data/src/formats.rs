@@ -161,6 +161,43 @@ pub fn read_landmarks_csv_path(path: &Path) -> std::io::Result<Vec<LandmarkRow>>
     read_landmarks_csv(std::io::BufReader::new(std::fs::File::open(path)?))
 }
 
+/// Ground truth (or an estimate) as files: one trajectory per robot and the landmarks.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Truth {
+    pub trajectories: std::collections::BTreeMap<String, Vec<TrajectoryPoint>>,
+    /// Empty when the data set has no landmark truth (Victoria Park).
+    pub landmarks: Vec<LandmarkRow>,
+}
+
+impl Truth {
+    /// Writes `trajectory_<robot>.tum` per robot and, when there are landmarks,
+    /// `landmarks.csv` into `dir` (created if missing).
+    pub fn write_dir(&self, dir: &Path) -> std::io::Result<()> {
+        std::fs::create_dir_all(dir)?;
+        for (robot, pts) in &self.trajectories {
+            write_tum_path(&trajectory_file(dir, robot), pts)?;
+        }
+        if !self.landmarks.is_empty() {
+            write_landmarks_csv_path(&landmarks_file(dir), &self.landmarks)?;
+        }
+        Ok(())
+    }
+
+    /// Reads what [`Truth::write_dir`] wrote; a missing landmarks file reads as none.
+    pub fn read_dir(dir: &Path) -> std::io::Result<Truth> {
+        let mut t = Truth::default();
+        for robot in robots_in(dir)? {
+            let pts = read_tum_path(&trajectory_file(dir, &robot))?;
+            t.trajectories.insert(robot, pts);
+        }
+        let lm = landmarks_file(dir);
+        if lm.exists() {
+            t.landmarks = read_landmarks_csv_path(&lm)?;
+        }
+        Ok(t)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

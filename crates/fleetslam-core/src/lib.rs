@@ -28,16 +28,18 @@
 //! assert_eq!(slam.estimate().landmarks.len(), 1);
 //! ```
 
-// pub mod config;
-// pub mod ekf;
-// pub mod filter;
+pub mod config;
+pub mod ekf;
+pub mod filter;
 pub mod log;
-// pub mod map;
+pub mod map;
 pub mod motion;
 pub mod pose;
-// pub mod resample;
-// pub mod rng;
+pub mod resample;
+pub mod rng;
 pub mod sensor;
-// pub mod updater;
+pub mod updater;
 
+pub use config::FilterConfig;
+pub use filter::FastSlam;
 pub use pose::{Pose2, PoseGaussian};

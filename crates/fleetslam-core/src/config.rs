@@ -1,0 +1,213 @@
+//! The filter's configuration: every field documents its default, unit and trade-off.
+
+use crate::log::{LogHeader, SensorRange};
+use crate::motion::{AckermannParams, MotionModel, MotionNoise};
+use crate::sensor::{LandmarkKind, SensorNoise};
+use serde::{Deserialize, Serialize};
+
+/// FastSLAM 1.0 (pose sampled from the motion model) or 2.0 (pose sampled from a proposal
+/// that includes the current observations; Montemerlo et al. 2003).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FastSlamVersion {
+    #[serde(rename = "1", alias = "v1", alias = "1.0")]
+    V1,
+    #[serde(rename = "2", alias = "v2", alias = "2.0")]
+    V2,
+}
+
+/// How observations are matched to landmarks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Association {
+    /// By the id each observation carries.
+    Known,
+    /// Per-particle maximum likelihood with a Mahalanobis gate (ids are ignored).
+    Unknown,
+}
+
+/// Thresholds of data association, outlier rejection and landmark existence.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AssociationParams {
+    /// Unknown association: an observation joins the most likely landmark when its squared
+    /// Mahalanobis distance is below this. Default 9.21 (χ² 99%, 2 dof). Larger merges more.
+    pub gate: f64,
+    /// Unknown association: an observation farther than this from every landmark starts a
+    /// new one; between `gate` and this it is ambiguous and ignored. Default 16.0. Lower
+    /// values create more (possibly duplicate) landmarks.
+    pub new_landmark: f64,
+    /// Any association: an innovation beyond this squared Mahalanobis distance is an outlier
+    /// that does not update the landmark, and weighs the particle as if it lay on this
+    /// boundary (a robust, flat-tailed likelihood). Default 25.0; `null` disables.
+    pub outlier: Option<f64>,
+    /// Existence log-odds added per observation of a landmark. Default 1.0.
+    pub existence_hit: f32,
+    /// Existence log-odds removed when a landmark in view was not observed. Default 0.4.
+    /// Higher removes spurious landmarks faster, and real ones missed by the detector too.
+    pub existence_miss: f32,
+    /// Existence log-odds cap, so that long-lived landmarks can still be removed. Default 8.
+    pub existence_max: f32,
+}
+
+impl Default for AssociationParams {
+    fn default() -> Self {
+        Self {
+            gate: 9.21,
+            new_landmark: 16.0,
+            outlier: Some(25.0),
+            existence_hit: 1.0,
+            existence_miss: 0.4,
+            existence_max: 8.0,
+        }
+    }
+}
+
+/// The configuration of one filter (one run).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FilterConfig {
+    /// Number of particles N. Default 100. Cost grows linearly; accuracy saturates.
+    pub particles: usize,
+    /// FastSLAM version. Default 2.0, which needs far fewer particles with accurate sensors.
+    pub version: FastSlamVersion,
+    pub landmark_kind: LandmarkKind,
+    pub motion_model: MotionModel,
+    /// Vehicle constants for the Ackermann model. Default: the Victoria Park car.
+    pub ackermann: AckermannParams,
+    pub motion_noise: MotionNoise,
+    /// Landmark measurement noise assumed by the filter.
+    pub sensor_noise: SensorNoise,
+    /// Robot-sighting (range, bearing) noise assumed by the filter.
+    pub sighting_noise: SensorNoise,
+    pub association: Association,
+    pub association_params: AssociationParams,
+    /// The sensor's field of view, for the existence score. `None` disables removal.
+    pub sensor_range: Option<SensorRange>,
+    /// Resample when the effective sample size falls below this fraction of N. Default 0.5.
+    pub resample_threshold: f64,
+    /// Seed of every random draw. Default 0.
+    pub seed: u64,
+    /// Particles per work item and per updater batch. Default 64: large enough to amortise a
+    /// batched updater, small enough to spread over threads.
+    pub batch_size: usize,
+}
+
+impl Default for FilterConfig {
+    fn default() -> Self {
+        Self {
+            particles: 100,
+            version: FastSlamVersion::V2,
+            landmark_kind: LandmarkKind::RangeBearing2d,
+            motion_model: MotionModel::Velocity,
+            ackermann: AckermannParams::default(),
+            motion_noise: MotionNoise::default(),
+            sensor_noise: SensorNoise::default(),
+            sighting_noise: SensorNoise::default(),
+            association: Association::Known,
+            association_params: AssociationParams::default(),
+            sensor_range: None,
+            resample_threshold: 0.5,
+            seed: 0,
+            batch_size: 64,
+        }
+    }
+}
+
+/// A configuration error; the message names the field and the allowed values.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{0}")]
+pub struct ConfigError(pub String);
+
+impl FilterConfig {
+    /// The configuration a log's header suggests (its models and noise).
+    pub fn from_header(h: &LogHeader) -> Self {
+        let d = Self::default();
+        Self {
+            landmark_kind: h.landmark_kind,
+            motion_model: h.motion_model,
+            ackermann: h.ackermann.unwrap_or(d.ackermann),
+            motion_noise: h.motion_noise.unwrap_or(d.motion_noise),
+            sensor_noise: h.sensor_noise.unwrap_or(d.sensor_noise),
+            sighting_noise: h.sighting_noise.or(h.sensor_noise).unwrap_or(d.sighting_noise),
+            association: if h.landmark_ids { Association::Known } else { Association::Unknown },
+            sensor_range: h.sensor_range,
+            ..d
+        }
+    }
+
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let err = |s: String| Err(ConfigError(s));
+        if self.particles == 0 || self.particles > 1_000_000 {
+            return err(format!("particles must be between 1 and 1000000, got {}", self.particles));
+        }
+        if self.batch_size == 0 {
+            return err("batch_size must be at least 1".into());
+        }
+        if !(self.resample_threshold.is_finite() && (0.0..=1.0).contains(&self.resample_threshold)) {
+            return err(format!(
+                "resample_threshold must be a fraction between 0 and 1, got {}",
+                self.resample_threshold
+            ));
+        }
+        self.motion_noise.validate().map_err(ConfigError)?;
+        self.sensor_noise.validate("sensor_noise").map_err(ConfigError)?;
+        self.sighting_noise.validate("sighting_noise").map_err(ConfigError)?;
+        let a = &self.association_params;
+        if !(a.gate.is_finite() && a.gate > 0.0) {
+            return err(format!("association_params.gate must be > 0, got {}", a.gate));
+        }
+        if !(a.new_landmark.is_finite() && a.new_landmark >= a.gate) {
+            return err(format!(
+                "association_params.new_landmark must be >= gate ({}), got {}",
+                a.gate, a.new_landmark
+            ));
+        }
+        if let Some(o) = a.outlier
+            && !(o.is_finite() && o > 0.0)
+        {
+            return err(format!("association_params.outlier must be > 0 or null, got {o}"));
+        }
+        if !(a.existence_hit >= 0.0 && a.existence_miss >= 0.0 && a.existence_max > 0.0) {
+            return err("association_params.existence_* must be >= 0 (existence_max > 0)".into());
+        }
+        if let Some(r) = &self.sensor_range
+            && !(r.max_range.is_finite() && r.max_range > 0.0 && r.fov.is_finite() && r.fov > 0.0)
+        {
+            return err(format!(
+                "sensor_range needs max_range > 0 and fov > 0 (radians), got {r:?}"
+            ));
+        }
+        let k = &self.ackermann;
+        if self.motion_model == MotionModel::Ackermann
+            && !(k.wheel_base.is_finite() && k.wheel_base > 0.0)
+        {
+            return err(format!("ackermann.wheel_base must be > 0, got {}", k.wheel_base));
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn default_is_valid_and_errors_name_fields() {
+        FilterConfig::default().validate().unwrap();
+        let bad = FilterConfig { particles: 0, ..Default::default() };
+        assert!(bad.validate().unwrap_err().0.contains("particles"));
+        let mut bad = FilterConfig::default();
+        bad.sensor_noise.range = -1.0;
+        assert!(bad.validate().unwrap_err().0.contains("sensor_noise.range"));
+    }
+
+    #[test]
+    fn version_spellings() {
+        for s in ["\"1\"", "\"v1\"", "\"1.0\""] {
+            assert_eq!(serde_json::from_str::<FastSlamVersion>(s).unwrap(), FastSlamVersion::V1);
+        }
+        let e = serde_json::from_str::<FilterConfig>(r#"{"version":"3"}"#).unwrap_err();
+        assert!(e.to_string().contains("expected one of"), "{e}");
+    }
+}

@@ -1,0 +1,293 @@
+//! The extended Kalman filter landmark update (Montemerlo et al. 2002), for 2D range-bearing
+//! and 3D relative-point landmarks.
+//!
+//! With `h` the measurement model, `H` its Jacobian with respect to the landmark at the
+//! prior mean, and `Q` the measurement noise:
+//!
+//! ```text
+//! S  = H Σ Hᵀ + Q            innovation covariance
+//! K  = Σ Hᵀ S⁻¹              gain
+//! ν  = z − h(μ, x)           innovation (bearing wrapped to (−π, π])
+//! μ' = μ + K ν
+//! Σ' = (I − K H) Σ (I − K H)ᵀ + K Q Kᵀ      (Joseph form: symmetric positive definite)
+//! ln p(z) = −½ νᵀ S⁻¹ ν − ½ ln |2π S|
+//! ```
+//!
+//! A new landmark is the inverse of the measurement with `Σ = H⁻¹ Q H⁻ᵀ`.
+
+use crate::pose::{Pose2, wrap_angle};
+use crate::sensor::{
+    LandmarkKind, SensorNoise, point3_inverse, point3_predict, range_bearing_inverse,
+    range_bearing_predict,
+};
+use crate::updater::{LandmarkGaussian, LandmarkUpdater, UpdateInput, UpdateOutput};
+use nalgebra::{Matrix2, Matrix3, Vector2, Vector3};
+
+const LN_2PI: f64 = 1.837_877_066_409_345_3;
+
+/// The EKF updater.
+#[derive(Debug, Clone)]
+pub struct EkfUpdater {
+    kind: LandmarkKind,
+    q2: Matrix2<f64>,
+    q3: Matrix3<f64>,
+}
+
+impl EkfUpdater {
+    pub fn new(kind: LandmarkKind, noise: &SensorNoise) -> Self {
+        Self {
+            kind,
+            q2: noise.q2(),
+            q3: noise.q3(),
+        }
+    }
+
+    #[inline]
+    fn update_2d(&self, inp: &UpdateInput) -> UpdateOutput {
+        let prior = &inp.prior;
+        let Some((zhat, h, _)) = range_bearing_predict(&inp.pose, prior.mean[0], prior.mean[1])
+        else {
+            return rejected(prior);
+        };
+        let sigma = prior.cov2();
+        let sht = sigma * h.transpose();
+        let s = h * sht + self.q2;
+        let det = s[(0, 0)] * s[(1, 1)] - s[(0, 1)] * s[(1, 0)];
+        if !(det > 0.0 && det.is_finite()) {
+            return rejected(prior);
+        }
+        let s_inv = Matrix2::new(s[(1, 1)], -s[(0, 1)], -s[(1, 0)], s[(0, 0)]) / det;
+        let k = sht * s_inv;
+        let nu = Vector2::new(inp.z[0] - zhat[0], wrap_angle(inp.z[1] - zhat[1]));
+        let mean = Vector2::new(prior.mean[0], prior.mean[1]) + k * nu;
+        let ikh = Matrix2::identity() - k * h;
+        let cov = ikh * sigma * ikh.transpose() + k * self.q2 * k.transpose();
+        let m2 = nu.dot(&(s_inv * nu));
+        let out = UpdateOutput {
+            posterior: LandmarkGaussian::from_2d([mean[0], mean[1]], &cov),
+            log_likelihood: -0.5 * m2 - LN_2PI - 0.5 * det.ln(),
+            mahalanobis2: m2,
+        };
+        if out.posterior.is_finite() && out.log_likelihood.is_finite() {
+            out
+        } else {
+            rejected(prior)
+        }
+    }
+
+    #[inline]
+    fn update_3d(&self, inp: &UpdateInput) -> UpdateOutput {
+        let prior = &inp.prior;
+        let (zhat, h, _) = point3_predict(&inp.pose, &prior.mean);
+        let sigma = prior.cov3();
+        let sht = sigma * h.transpose();
+        let s = h * sht + self.q3;
+        let Some(chol) = s.cholesky() else {
+            return rejected(prior);
+        };
+        let s_inv = chol.inverse();
+        let det = chol.determinant();
+        let k = sht * s_inv;
+        let nu = Vector3::new(inp.z[0], inp.z[1], inp.z[2]) - zhat;
+        let mean = Vector3::from(prior.mean) + k * nu;
+        let ikh = Matrix3::identity() - k * h;
+        let cov = ikh * sigma * ikh.transpose() + k * self.q3 * k.transpose();
+        let m2 = nu.dot(&(s_inv * nu));
+        let out = UpdateOutput {
+            posterior: LandmarkGaussian::from_3d([mean[0], mean[1], mean[2]], &cov),
+            log_likelihood: -0.5 * m2 - 1.5 * LN_2PI - 0.5 * det.ln(),
+            mahalanobis2: m2,
+        };
+        if out.posterior.is_finite() && out.log_likelihood.is_finite() {
+            out
+        } else {
+            rejected(prior)
+        }
+    }
+}
+
+/// An update that could not be computed (degenerate geometry or numbers): the prior is kept
+/// and the observation counts as an infinitely unlikely one, which the filter floors.
+fn rejected(prior: &LandmarkGaussian) -> UpdateOutput {
+    UpdateOutput {
+        posterior: *prior,
+        log_likelihood: f64::NEG_INFINITY,
+        mahalanobis2: f64::INFINITY,
+    }
+}
+
+impl LandmarkUpdater for EkfUpdater {
+    fn name(&self) -> &str {
+        "ekf"
+    }
+
+    fn kind(&self) -> LandmarkKind {
+        self.kind
+    }
+
+    fn initialize(&self, pose: &Pose2, z: &[f64; 3]) -> LandmarkGaussian {
+        match self.kind {
+            LandmarkKind::RangeBearing2d => {
+                let (x, y) = range_bearing_inverse(pose, z[0], z[1]);
+                // H_m⁻¹ maps (range, bearing) noise to position: columns are the line of
+                // sight and its normal scaled by the range.
+                let (s, c) = (pose.theta + z[1]).sin_cos();
+                let hinv = Matrix2::new(c, -z[0] * s, s, z[0] * c);
+                let cov = hinv * self.q2 * hinv.transpose();
+                LandmarkGaussian::from_2d([x, y], &cov)
+            }
+            LandmarkKind::Point3d => {
+                let m = point3_inverse(pose, z);
+                let (s, c) = pose.theta.sin_cos();
+                let r = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
+                LandmarkGaussian::from_3d(m, &(r * self.q3 * r.transpose()))
+            }
+        }
+    }
+
+    fn update_batch(&self, inputs: &[UpdateInput], outputs: &mut [UpdateOutput]) {
+        debug_assert_eq!(inputs.len(), outputs.len());
+        match self.kind {
+            LandmarkKind::RangeBearing2d => {
+                for (i, o) in inputs.iter().zip(outputs.iter_mut()) {
+                    *o = self.update_2d(i);
+                }
+            }
+            LandmarkKind::Point3d => {
+                for (i, o) in inputs.iter().zip(outputs.iter_mut()) {
+                    *o = self.update_3d(i);
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn noise() -> SensorNoise {
+        SensorNoise {
+            range: 0.1,
+            bearing: 0.05,
+            xyz: [0.1, 0.2, 0.3],
+        }
+    }
+
+    #[test]
+    fn ekf_2d_hand_worked() {
+        // Robot at origin facing +x, landmark prior at (2, 0) with covariance I * 0.01.
+        // H = [[1, 0], [0, 0.5]] (dx = 2, dy = 0, r = 2, q = 4).
+        // S = diag(0.01 + 0.01, 0.25 * 0.01 + 0.0025) = diag(0.02, 0.005).
+        // K = Σ Hᵀ S⁻¹ = diag(0.01 / 0.02, 0.01 * 0.5 / 0.005) = diag(0.5, 1.0).
+        // z = (2.2, 0.1): ν = (0.2, 0.1) → μ' = (2.1, 0.1).
+        let u = EkfUpdater::new(LandmarkKind::RangeBearing2d, &noise());
+        let prior = LandmarkGaussian {
+            mean: [2.0, 0.0, 0.0],
+            cov: [0.01, 0.0, 0.0, 0.01, 0.0, 0.0],
+        };
+        let out = u.update(&UpdateInput {
+            prior,
+            pose: Pose2::default(),
+            z: [2.2, 0.1, 0.0],
+        });
+        assert!((out.posterior.mean[0] - 2.1).abs() < 1e-12);
+        assert!((out.posterior.mean[1] - 0.1).abs() < 1e-12);
+        // Σ' = (I − KH) Σ: diag(0.5 * 0.01, (1 − 0.5) * 0.01) = diag(0.005, 0.005).
+        assert!((out.posterior.cov[0] - 0.005).abs() < 1e-12);
+        assert!((out.posterior.cov[3] - 0.005).abs() < 1e-12);
+        assert!(out.posterior.cov[1].abs() < 1e-12);
+        // m² = 0.2² / 0.02 + 0.1² / 0.005 = 2 + 2 = 4.
+        assert!((out.mahalanobis2 - 4.0).abs() < 1e-12);
+        let ll = -2.0 - LN_2PI - 0.5 * (0.02f64 * 0.005).ln();
+        assert!((out.log_likelihood - ll).abs() < 1e-12);
+    }
+
+    #[test]
+    fn ekf_3d_hand_worked() {
+        // Robot at origin facing +x: H = I, so each axis is a scalar Kalman update.
+        let u = EkfUpdater::new(LandmarkKind::Point3d, &noise());
+        let prior = LandmarkGaussian {
+            mean: [1.0, 2.0, 3.0],
+            cov: [0.01, 0.0, 0.0, 0.04, 0.0, 0.09],
+        };
+        let out = u.update(&UpdateInput {
+            prior,
+            pose: Pose2::default(),
+            z: [1.2, 2.2, 3.2],
+        });
+        // Gains 0.01/0.02, 0.04/0.08, 0.09/0.18 = 0.5 each: every coordinate moves by 0.1.
+        for (k, want) in [1.1, 2.1, 3.1].iter().enumerate() {
+            assert!((out.posterior.mean[k] - want).abs() < 1e-12);
+        }
+        assert!((out.posterior.cov[0] - 0.005).abs() < 1e-12);
+        assert!((out.posterior.cov[3] - 0.02).abs() < 1e-12);
+        assert!((out.posterior.cov[5] - 0.045).abs() < 1e-12);
+    }
+
+    #[test]
+    fn initialize_inverts_the_measurement() {
+        let u = EkfUpdater::new(LandmarkKind::RangeBearing2d, &noise());
+        let pose = Pose2::new(1.0, 2.0, 0.5);
+        let g = u.initialize(&pose, &[3.0, -0.4, 0.0]);
+        let (z, _, _) = range_bearing_predict(&pose, g.mean[0], g.mean[1]).unwrap();
+        assert!((z[0] - 3.0).abs() < 1e-12 && (z[1] + 0.4).abs() < 1e-12);
+        // Range noise lies along the line of sight, bearing noise across it, scaled by r.
+        let c = g.cov2();
+        let eig = c.symmetric_eigenvalues();
+        let (lo, hi) = (eig.min(), eig.max());
+        assert!((lo - 0.01).abs() < 1e-12 && (hi - (3.0f64 * 0.05).powi(2)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn degenerate_geometry_keeps_the_prior() {
+        let u = EkfUpdater::new(LandmarkKind::RangeBearing2d, &noise());
+        let prior = LandmarkGaussian {
+            mean: [0.0, 0.0, 0.0],
+            cov: [0.01, 0.0, 0.0, 0.01, 0.0, 0.0],
+        };
+        let out = u.update(&UpdateInput {
+            prior,
+            pose: Pose2::default(),
+            z: [1.0, 0.0, 0.0],
+        });
+        assert_eq!(out.posterior, prior);
+        assert_eq!(out.log_likelihood, f64::NEG_INFINITY);
+    }
+
+    fn is_spd(g: &LandmarkGaussian, kind: LandmarkKind) -> bool {
+        match kind {
+            LandmarkKind::RangeBearing2d => g.cov2().cholesky().is_some(),
+            LandmarkKind::Point3d => g.cov3().cholesky().is_some(),
+        }
+    }
+
+    proptest! {
+        #[test]
+        fn posterior_is_spd_and_tighter(
+            px in -10.0f64..10.0, py in -10.0f64..10.0, th in -3.2f64..3.2,
+            r in 0.3f64..20.0, b in -1.5f64..1.5, dz in -2.0f64..2.0,
+            nr in -0.5f64..0.5, nb in -0.2f64..0.2, s in 0.001f64..4.0,
+        ) {
+            for kind in [LandmarkKind::RangeBearing2d, LandmarkKind::Point3d] {
+                let u = EkfUpdater::new(kind, &noise());
+                let pose = Pose2::new(px, py, th);
+                let z0 = match kind {
+                    LandmarkKind::RangeBearing2d => [r, b, 0.0],
+                    LandmarkKind::Point3d => [r * b.cos(), r * b.sin(), dz],
+                };
+                let mut prior = u.initialize(&pose, &z0);
+                for c in prior.cov.iter_mut() { *c *= s; }
+                let z = [z0[0] + nr, z0[1] + nb, z0[2] + nr];
+                let out = u.update(&UpdateInput { prior, pose, z });
+                prop_assert!(out.log_likelihood.is_finite());
+                prop_assert!(out.mahalanobis2 >= 0.0);
+                prop_assert!(is_spd(&out.posterior, kind));
+                // An update never increases the variance along any axis.
+                prop_assert!(out.posterior.cov[0] <= prior.cov[0] * (1.0 + 1e-9));
+                prop_assert!(out.posterior.cov[3] <= prior.cov[3] * (1.0 + 1e-9));
+            }
+        }
+    }
+}

@@ -1,0 +1,96 @@
+//! The per-landmark update, behind a trait so that the EKF can be swapped for a learned one.
+//!
+//! An updater is a pure function of (landmark prior, robot pose, measurement): it returns
+//! the landmark posterior and the observation's log-likelihood (which weighs the particle in
+//! FastSLAM 1.0) and its squared Mahalanobis distance (which the filter uses to reject
+//! outliers). It also creates a landmark from its first observation. Updates come in batches
+//! (one item per particle), so an implementation can vectorise across particles; the
+//! filter's results must not depend on how items are batched, so every item is computed
+//! independently of the others.
+
+use crate::pose::Pose2;
+use crate::sensor::LandmarkKind;
+use serde::{Deserialize, Serialize};
+
+/// A landmark's Gaussian: mean `[x, y, z]` (z = 0 in 2D) and the upper triangle of its
+/// covariance `[xx, xy, xz, yy, yz, zz]` (the z entries are 0 in 2D).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct LandmarkGaussian {
+    pub mean: [f64; 3],
+    pub cov: [f64; 6],
+}
+
+impl LandmarkGaussian {
+    pub fn cov2(&self) -> nalgebra::Matrix2<f64> {
+        let c = &self.cov;
+        nalgebra::Matrix2::new(c[0], c[1], c[1], c[3])
+    }
+
+    pub fn cov3(&self) -> nalgebra::Matrix3<f64> {
+        let c = &self.cov;
+        nalgebra::Matrix3::new(c[0], c[1], c[2], c[1], c[3], c[4], c[2], c[4], c[5])
+    }
+
+    /// Builds from a 2x2 covariance, symmetrising it.
+    pub fn from_2d(mean: [f64; 2], m: &nalgebra::Matrix2<f64>) -> Self {
+        let xy = 0.5 * (m[(0, 1)] + m[(1, 0)]);
+        Self {
+            mean: [mean[0], mean[1], 0.0],
+            cov: [m[(0, 0)], xy, 0.0, m[(1, 1)], 0.0, 0.0],
+        }
+    }
+
+    /// Builds from a 3x3 covariance, symmetrising it.
+    pub fn from_3d(mean: [f64; 3], m: &nalgebra::Matrix3<f64>) -> Self {
+        let s = |i: usize, j: usize| 0.5 * (m[(i, j)] + m[(j, i)]);
+        Self {
+            mean,
+            cov: [m[(0, 0)], s(0, 1), s(0, 2), m[(1, 1)], s(1, 2), m[(2, 2)]],
+        }
+    }
+
+    pub fn is_finite(&self) -> bool {
+        self.mean.iter().chain(self.cov.iter()).all(|v| v.is_finite())
+    }
+}
+
+/// One update to compute.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct UpdateInput {
+    pub prior: LandmarkGaussian,
+    pub pose: Pose2,
+    /// `[range, bearing, 0]` or `[dx, dy, dz]`.
+    pub z: [f64; 3],
+}
+
+/// The result of one update.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct UpdateOutput {
+    pub posterior: LandmarkGaussian,
+    /// ln p(z | prior, pose): the Gaussian innovation likelihood.
+    pub log_likelihood: f64,
+    /// Squared Mahalanobis distance of the innovation.
+    pub mahalanobis2: f64,
+}
+
+/// A per-landmark update. Implementations must be deterministic and item-independent.
+pub trait LandmarkUpdater: Send + Sync + std::fmt::Debug {
+    /// A short name for reports (`ekf`, a model id, ...).
+    fn name(&self) -> &str;
+
+    /// The landmark kind this updater serves; a run refuses an updater of another kind.
+    fn kind(&self) -> LandmarkKind;
+
+    /// A new landmark from its first observation.
+    fn initialize(&self, pose: &Pose2, z: &[f64; 3]) -> LandmarkGaussian;
+
+    /// Updates every input; `outputs.len() == inputs.len()`.
+    fn update_batch(&self, inputs: &[UpdateInput], outputs: &mut [UpdateOutput]);
+
+    /// One update (a batch of one).
+    fn update(&self, input: &UpdateInput) -> UpdateOutput {
+        let mut out = [UpdateOutput::default()];
+        self.update_batch(std::slice::from_ref(input), &mut out);
+        out[0]
+    }
+}

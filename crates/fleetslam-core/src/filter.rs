@@ -444,7 +444,9 @@ impl FastSlam {
                     }),
                     _ => None,
                 };
-                Obs { z, id: o.id, slot }
+                // Landmarks keep the observations' ids only when association is by id.
+                let id = (cfg.association == Association::Known).then_some(o.id).flatten();
+                Obs { z, id, slot }
             })
             .filter(|o| cfg.association == Association::Unknown || o.slot.is_some())
             .collect();
@@ -1029,7 +1031,7 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
             let p = &mut chunk[i];
             if !use_v2 {
                 if let Some(bound) = outlier
-                    && !(out.mahalanobis2 <= bound)
+                    && (out.mahalanobis2.is_nan() || out.mahalanobis2 > bound)
                 {
                     p.log_w += outlier_ll(out.log_likelihood, out.mahalanobis2, bound);
                     stats.outliers += 1;

@@ -45,6 +45,11 @@ pub struct LogHeader {
     /// Whether observations carry landmark ids.
     #[serde(default = "default_true")]
     pub landmark_ids: bool,
+    /// Whether the robots' start poses are given in the ground truth's frame (MRCLAM: yes,
+    /// Vicon's; Victoria Park: no, the car starts at the origin and GPS has its own frame).
+    /// Evaluation aligns trajectories only when they are not.
+    #[serde(default = "default_true")]
+    pub truth_frame: bool,
     pub robots: Vec<RobotStart>,
 }
 
@@ -262,6 +267,7 @@ mod tests {
                 sighting_noise: None,
                 sensor_range: None,
                 landmark_ids: true,
+                truth_frame: true,
                 robots: vec![RobotStart {
                     id: "1".into(),
                     start: Some(PoseGaussian::exact(Pose2::new(1.0, 2.0, 0.5))),

@@ -15,8 +15,10 @@ use serde::{Deserialize, Serialize};
 #[serde(rename_all = "snake_case")]
 pub enum LandmarkKind {
     /// 2D landmarks observed as (range [m], bearing [rad]).
+    #[serde(rename = "range_bearing_2d")]
     RangeBearing2d,
     /// 3D landmarks observed as a point (dx, dy, dz) [m] in the robot frame.
+    #[serde(rename = "point3d")]
     Point3d,
 }
 
@@ -257,6 +259,14 @@ mod tests {
                 assert!((hm3[(i, j)] - nm3[i][j]).abs() < 1e-5);
                 assert!((hx3[(i, j)] - nx3[i][j]).abs() < 1e-5);
             }
+        }
+    }
+
+    #[test]
+    fn kind_names() {
+        for k in [LandmarkKind::RangeBearing2d, LandmarkKind::Point3d] {
+            assert_eq!(serde_json::to_string(&k).unwrap(), format!("\"{}\"", k.as_str()));
+            assert!(LandmarkKind::ALL.contains(&k.as_str()));
         }
     }
 

@@ -3,4 +3,5 @@
 pub mod evaluate;
 pub mod formats;
 pub mod import;
+pub mod run;
 pub mod sim;

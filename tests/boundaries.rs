@@ -1,0 +1,37 @@
+//! The algorithm crate stays free of async runtimes, web frameworks, databases and burn.
+
+use std::process::Command;
+
+#[test]
+fn core_has_no_runtime_web_database_or_burn_dependency() {
+    let out = Command::new(env!("CARGO"))
+        .args([
+            "tree",
+            "-p",
+            "fleetslam-core",
+            "-e",
+            "normal,build",
+            "--prefix",
+            "none",
+            "--format",
+            "{p}",
+            "--offline",
+        ])
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .expect("running cargo tree");
+    assert!(
+        out.status.success(),
+        "cargo tree failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let tree = String::from_utf8_lossy(&out.stdout);
+    let names: Vec<&str> = tree.lines().filter_map(|l| l.split_whitespace().next()).collect();
+    assert!(names.contains(&"nalgebra"), "unexpected tree:\n{tree}");
+    for banned in ["tokio", "axum", "hyper", "sqlx", "burn", "burn-core", "async-std"] {
+        assert!(
+            !names.contains(&banned),
+            "fleetslam-core must not depend on {banned}:\n{tree}"
+        );
+    }
+}

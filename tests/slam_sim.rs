@@ -1,0 +1,185 @@
+//! The filter on simulated data: accuracy in 2D and 3D, known and unknown association,
+//! spurious landmark removal, robots joining late, and robustness to extreme inputs.
+
+use fleetslam_core::config::{Association, FastSlamVersion, FilterConfig};
+use fleetslam_core::filter::FastSlam;
+use fleetslam_core::log::{LandmarkObservation, Record, RobotSighting};
+use fleetslam_core::motion::Motion;
+use fleetslam_core::pose::{Pose2, PoseGaussian};
+use fleetslam_core::sensor::LandmarkKind;
+use fleetslam_data::evaluate::{EvalOptions, evaluate};
+use fleetslam_data::run::{TrajectoryEstimate, run_log};
+use fleetslam_suite::small_sim;
+use proptest::prelude::*;
+
+fn run_and_eval(kind: LandmarkKind, ids: bool, version: FastSlamVersion) -> (f64, f64, usize) {
+    let sim = small_sim(3, 40.0, 11, |c| {
+        c.kind = kind;
+        c.with_ids = ids;
+        c.landmarks = 25;
+    });
+    let mut cfg = FilterConfig::from_header(&sim.log.header);
+    cfg.particles = 100;
+    cfg.version = version;
+    let mut slam = FastSlam::new(cfg).unwrap();
+    let out = run_log(&mut slam, &sim.log, TrajectoryEstimate::Mean, |_, _| {}).unwrap();
+    let ev = evaluate(&out.estimate, &sim.truth, true, &EvalOptions::default());
+    println!("{kind:?} ids={ids} {version:?}\n{ev}");
+    (ev.team.ate_rmse, ev.team.landmark_rmse.unwrap(), ev.team.landmarks_spurious)
+}
+
+#[test]
+fn accurate_in_2d_and_3d_with_known_and_unknown_ids() {
+    for kind in [LandmarkKind::RangeBearing2d, LandmarkKind::Point3d] {
+        for version in [FastSlamVersion::V1, FastSlamVersion::V2] {
+            let (ate, lm, _) = run_and_eval(kind, true, version);
+            assert!(ate < 0.25 && lm < 0.25, "{kind:?} {version:?}: ATE {ate}, landmarks {lm}");
+        }
+        let (ate, lm, spurious) = run_and_eval(kind, false, FastSlamVersion::V2);
+        assert!(ate < 0.3 && lm < 0.3, "{kind:?} unknown ids: ATE {ate}, landmarks {lm}");
+        assert!(spurious <= 3, "{kind:?}: {spurious} spurious landmarks");
+    }
+}
+
+fn one_robot(cfg: FilterConfig) -> FastSlam {
+    let mut slam = FastSlam::new(cfg).unwrap();
+    slam.add_robot("a", &PoseGaussian::exact(Pose2::default()), 0.0).unwrap();
+    slam
+}
+
+fn rec(seq: u64, t: f64, landmarks: Vec<LandmarkObservation>) -> Record {
+    Record {
+        robot: "a".into(),
+        seq,
+        t,
+        motion: Some(Motion::Velocity(vec![[0.0, 0.0, 0.2]])),
+        landmarks,
+        robots: vec![],
+    }
+}
+
+fn obs(z: [f64; 2]) -> LandmarkObservation {
+    LandmarkObservation { id: None, z: z.to_vec() }
+}
+
+#[test]
+fn spurious_landmark_is_removed_real_one_kept() {
+    let mut cfg = FilterConfig {
+        particles: 20,
+        association: Association::Unknown,
+        sensor_range: Some(fleetslam_core::log::SensorRange { max_range: 10.0, fov: 3.0 }),
+        ..FilterConfig::default()
+    };
+    cfg.motion_noise.trans_per_sqrt_s = 0.0;
+    cfg.motion_noise.rot_per_sqrt_s = 0.0;
+    let mut slam = one_robot(cfg);
+    // A real landmark at (3, 0) seen every time; a ghost at (3, 2) seen once.
+    slam.step(&rec(0, 0.2, vec![obs([3.0, 0.0]), obs([13f64.sqrt(), (2.0f64).atan2(3.0)])])).unwrap();
+    assert_eq!(slam.estimate().landmarks.len(), 2);
+    for k in 1..10 {
+        slam.step(&rec(k, 0.2 * (k + 1) as f64, vec![obs([3.0, 0.0])])).unwrap();
+    }
+    let est = slam.estimate();
+    assert_eq!(est.landmarks.len(), 1, "{:?}", est.landmarks);
+    assert!((est.landmarks[0].gaussian.mean[0] - 3.0).abs() < 0.05);
+    assert!(slam.stats().landmarks_removed > 0);
+}
+
+#[test]
+fn robot_added_late_at_a_known_pose_maps_in_the_shared_map() {
+    let sim = small_sim(2, 30.0, 4, |_| {});
+    let mut log = sim.log.clone();
+    log.sort();
+    let mut cfg = FilterConfig::from_header(&log.header);
+    cfg.particles = 60;
+    let mut slam = FastSlam::new(cfg).unwrap();
+    let first = &log.header.robots[0];
+    slam.add_robot(&first.id, first.start.as_ref().unwrap(), 0.0).unwrap();
+    let (early, late): (Vec<_>, Vec<_>) = log.records.iter().partition(|r| r.t < 10.0);
+    for r in early.iter().filter(|r| r.robot == first.id) {
+        slam.step(r).unwrap();
+    }
+    let mapped = slam.estimate().landmarks.len();
+    // Robot 2 joins at t = 10 s at its true pose then, with some uncertainty.
+    let second = &log.header.robots[1].id;
+    let truth = sim.truth.trajectories[second]
+        .iter()
+        .find(|p| p.t >= 10.0 - 1e-9)
+        .unwrap()
+        .pose;
+    slam.add_robot(second, &PoseGaussian::diagonal(truth, 0.05, 0.05, 0.02), 10.0 - 1e-9).unwrap();
+    for r in late {
+        slam.step(r).unwrap();
+    }
+    let est = slam.estimate();
+    assert_eq!(est.robots.len(), 2);
+    assert!(est.landmarks.len() >= mapped);
+    let end = sim.truth.trajectories[second].last().unwrap().pose;
+    let err = est.robots[1].mean.distance(&end);
+    assert!(err < 0.3, "late robot ends {err} m from truth");
+}
+
+#[test]
+fn bad_records_are_refused_without_changing_the_filter() {
+    let mut slam = one_robot(FilterConfig { particles: 10, ..FilterConfig::default() });
+    slam.step(&rec(0, 1.0, vec![obs([2.0, 0.1])])).unwrap();
+    let before = slam.snapshot();
+    let mut unknown = rec(1, 2.0, vec![]);
+    unknown.robot = "ghost".into();
+    assert!(slam.step(&unknown).unwrap_err().to_string().contains("ghost"));
+    assert!(slam.step(&rec(1, 0.5, vec![])).unwrap_err().to_string().contains("older"));
+    let nan = rec(1, 2.0, vec![obs([f64::NAN, 0.0])]);
+    assert!(slam.step(&nan).is_err());
+    let mut odo = rec(1, 2.0, vec![]);
+    odo.motion = Some(Motion::Odometry([1.0, 0.0, 0.0]));
+    assert!(slam.step(&odo).unwrap_err().to_string().contains("motion model"));
+    assert_eq!(slam.snapshot(), before);
+}
+
+#[test]
+fn updater_of_another_kind_is_refused() {
+    let ekf3 = fleetslam_core::ekf::EkfUpdater::new(LandmarkKind::Point3d, &Default::default());
+    let err = FastSlam::with_updater(FilterConfig::default(), std::sync::Arc::new(ekf3)).unwrap_err();
+    assert!(err.to_string().contains("point3d"), "{err}");
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(24))]
+    /// Extreme and conflicting observations never produce NaN, and the invariants hold:
+    /// weights normalised, landmark covariances symmetric positive definite.
+    #[test]
+    fn invariants_hold_under_extreme_observations(
+        zs in proptest::collection::vec((1e-3f64..1e5, -10.0f64..10.0, 0u32..4), 1..30),
+        v in -50.0f64..50.0, w in -20.0f64..20.0,
+        unknown in any::<bool>(), v1 in any::<bool>(),
+    ) {
+        let cfg = FilterConfig {
+            particles: 16,
+            batch_size: 5,
+            association: if unknown { Association::Unknown } else { Association::Known },
+            version: if v1 { FastSlamVersion::V1 } else { FastSlamVersion::V2 },
+            ..FilterConfig::default()
+        };
+        let mut slam = FastSlam::new(cfg).unwrap();
+        slam.add_robot("a", &PoseGaussian::diagonal(Pose2::default(), 0.1, 0.1, 0.1), 0.0).unwrap();
+        slam.add_robot("b", &PoseGaussian::exact(Pose2::new(1.0, 1.0, 0.0)), 0.0).unwrap();
+        for (k, (r, b, id)) in zs.iter().enumerate() {
+            let mut record = rec(k as u64, k as f64 * 0.1, vec![LandmarkObservation { id: Some(*id), z: vec![*r, *b] }]);
+            record.motion = Some(Motion::Velocity(vec![[v, w, 0.1]]));
+            record.robots = vec![RobotSighting { robot: "b".into(), z: vec![*r, *b] }];
+            slam.step(&record).unwrap();
+            let sum: f64 = slam.particles().iter().map(|p| p.log_w.exp()).sum();
+            prop_assert!((sum - 1.0).abs() < 1e-9, "weights sum to {}", sum);
+            prop_assert!(slam.ess().is_finite() && slam.ess() >= 1.0 - 1e-9);
+            for p in slam.particles() {
+                prop_assert!(p.poses.iter().all(|q| q.is_finite()));
+                for (_, l) in p.map.iter() {
+                    let c = l.gaussian.cov2();
+                    prop_assert!(l.gaussian.is_finite());
+                    prop_assert!((c[(0, 1)] - c[(1, 0)]).abs() < 1e-12);
+                    prop_assert!(c[(0, 0)] > 0.0 && c.determinant() > 0.0, "cov {:?}", c);
+                }
+            }
+        }
+    }
+}

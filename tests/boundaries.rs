@@ -26,9 +26,20 @@ fn core_has_no_runtime_web_database_or_burn_dependency() {
         String::from_utf8_lossy(&out.stderr)
     );
     let tree = String::from_utf8_lossy(&out.stdout);
-    let names: Vec<&str> = tree.lines().filter_map(|l| l.split_whitespace().next()).collect();
+    let names: Vec<&str> = tree
+        .lines()
+        .filter_map(|l| l.split_whitespace().next())
+        .collect();
     assert!(names.contains(&"nalgebra"), "unexpected tree:\n{tree}");
-    for banned in ["tokio", "axum", "hyper", "sqlx", "burn", "burn-core", "async-std"] {
+    for banned in [
+        "tokio",
+        "axum",
+        "hyper",
+        "sqlx",
+        "burn",
+        "burn-core",
+        "async-std",
+    ] {
         assert!(
             !names.contains(&banned),
             "fleetslam-core must not depend on {banned}:\n{tree}"

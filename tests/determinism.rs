@@ -10,7 +10,10 @@ use fleetslam_suite::small_sim;
 use std::sync::Arc;
 
 fn run_with_threads(log: &Log, cfg: &FilterConfig, threads: usize) -> (Snapshot, String) {
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap();
     pool.install(|| {
         let mut slam = FastSlam::new(cfg.clone()).unwrap();
         let out = run_log(&mut slam, log, TrajectoryEstimate::Mean, |_, _| {}).unwrap();
@@ -30,7 +33,11 @@ fn state_text(s: &Snapshot) -> String {
 fn assert_same_state(a: &Snapshot, b: &Snapshot) {
     let (ta, tb) = (state_text(a), state_text(b));
     if ta != tb {
-        let at = ta.bytes().zip(tb.bytes()).position(|(x, y)| x != y).unwrap_or(ta.len().min(tb.len()));
+        let at = ta
+            .bytes()
+            .zip(tb.bytes())
+            .position(|(x, y)| x != y)
+            .unwrap_or(ta.len().min(tb.len()));
         let from = at.saturating_sub(120);
         panic!(
             "states differ at byte {at}:\n  {}\n  {}",
@@ -43,7 +50,10 @@ fn assert_same_state(a: &Snapshot, b: &Snapshot) {
 fn check_thread_counts(log: &Log, cfg: FilterConfig) {
     let (a, ta) = run_with_threads(log, &cfg, 1);
     let (b, tb) = run_with_threads(log, &cfg, 2);
-    assert!(a.stats.landmark_updates > 0, "the run must exercise the updater");
+    assert!(
+        a.stats.landmark_updates > 0,
+        "the run must exercise the updater"
+    );
     assert!(a.stats.resamples > 0, "the run must exercise resampling");
     assert_same_state(&a, &b);
     assert!(ta == tb, "trajectories differ");
@@ -117,5 +127,8 @@ fn different_seeds_differ() {
     let (a, _) = run_with_threads(&sim.log, &cfg, 1);
     cfg.seed = 1;
     let (b, _) = run_with_threads(&sim.log, &cfg, 1);
-    assert!(a.particles != b.particles, "different seeds gave the same particles");
+    assert!(
+        a.particles != b.particles,
+        "different seeds gave the same particles"
+    );
 }

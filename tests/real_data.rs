@@ -10,8 +10,13 @@ use fleetslam_suite::dataset;
 
 #[test]
 fn mrclam_five_robots_shared_map_500_particles() {
-    let Some(dir) = dataset("mrclam-dataset6") else { return };
-    let opts = MrclamOptions { duration: Some(300.0), ..Default::default() };
+    let Some(dir) = dataset("mrclam-dataset6") else {
+        return;
+    };
+    let opts = MrclamOptions {
+        duration: Some(300.0),
+        ..Default::default()
+    };
     let imp = import_mrclam(&dir, &opts).unwrap();
     let mut cfg = FilterConfig::from_header(&imp.log.header);
     cfg.particles = 500;
@@ -29,7 +34,11 @@ fn mrclam_five_robots_shared_map_500_particles() {
     }
     let lm = ev.team.landmark_rmse.expect("MRCLAM has landmark truth");
     assert!(lm < 0.5, "landmark RMSE {lm} m");
-    assert!(ev.team.landmarks_matched >= 12, "{} landmarks matched", ev.team.landmarks_matched);
+    assert!(
+        ev.team.landmarks_matched >= 12,
+        "{} landmarks matched",
+        ev.team.landmarks_matched
+    );
     assert_eq!(ev.team.landmarks_spurious, 0);
 }
 
@@ -37,8 +46,13 @@ fn mrclam_five_robots_shared_map_500_particles() {
 fn mrclam_dead_reckoning_is_far_worse() {
     // The same slice with the observations removed: the filter is only as good as odometry.
     // Guards the test above against passing for the wrong reason.
-    let Some(dir) = dataset("mrclam-dataset6") else { return };
-    let opts = MrclamOptions { duration: Some(300.0), ..Default::default() };
+    let Some(dir) = dataset("mrclam-dataset6") else {
+        return;
+    };
+    let opts = MrclamOptions {
+        duration: Some(300.0),
+        ..Default::default()
+    };
     let mut imp = import_mrclam(&dir, &opts).unwrap();
     for r in &mut imp.log.records {
         r.landmarks.clear();
@@ -49,13 +63,23 @@ fn mrclam_dead_reckoning_is_far_worse() {
     let mut slam = FastSlam::new(cfg).unwrap();
     let out = run_log(&mut slam, &imp.log, TrajectoryEstimate::Mean, |_, _| {}).unwrap();
     let ev = evaluate(&out.estimate, &imp.truth, true, &EvalOptions::default());
-    assert!(ev.team.ate_rmse > 0.5, "dead reckoning ATE {} m", ev.team.ate_rmse);
+    assert!(
+        ev.team.ate_rmse > 0.5,
+        "dead reckoning ATE {} m",
+        ev.team.ate_rmse
+    );
 }
 
 #[test]
 fn mrclam_without_ids_unknown_association_runs() {
-    let Some(dir) = dataset("mrclam-dataset6") else { return };
-    let opts = MrclamOptions { duration: Some(120.0), no_ids: true, ..Default::default() };
+    let Some(dir) = dataset("mrclam-dataset6") else {
+        return;
+    };
+    let opts = MrclamOptions {
+        duration: Some(120.0),
+        no_ids: true,
+        ..Default::default()
+    };
     let imp = import_mrclam(&dir, &opts).unwrap();
     let mut cfg = FilterConfig::from_header(&imp.log.header);
     assert_eq!(cfg.association, Association::Unknown);
@@ -71,8 +95,13 @@ fn mrclam_without_ids_unknown_association_runs() {
 
 #[test]
 fn victoria_park_unknown_association_fastslam2() {
-    let Some(dir) = dataset("victoria-park") else { return };
-    let opts = VictoriaOptions { duration: Some(150.0), ..Default::default() };
+    let Some(dir) = dataset("victoria-park") else {
+        return;
+    };
+    let opts = VictoriaOptions {
+        duration: Some(150.0),
+        ..Default::default()
+    };
     let imp = import_victoria_park(&dir, &opts).unwrap();
     let mut cfg = FilterConfig::from_header(&imp.log.header);
     assert_eq!(cfg.association, Association::Unknown);
@@ -85,6 +114,13 @@ fn victoria_park_unknown_association_fastslam2() {
     println!("{ev}\n{:?}", out.metrics);
     let n = out.estimate.landmarks.len();
     assert!((10..400).contains(&n), "{n} landmarks");
-    assert!(out.metrics.landmarks_removed > 0, "spurious landmarks are removed");
-    assert!(ev.team.ate_rmse < 5.0, "ATE against GPS {} m", ev.team.ate_rmse);
+    assert!(
+        out.metrics.landmarks_removed > 0,
+        "spurious landmarks are removed"
+    );
+    assert!(
+        ev.team.ate_rmse < 5.0,
+        "ATE against GPS {} m",
+        ev.team.ate_rmse
+    );
 }

@@ -25,7 +25,11 @@ fn run_and_eval(kind: LandmarkKind, ids: bool, version: FastSlamVersion) -> (f64
     let out = run_log(&mut slam, &sim.log, TrajectoryEstimate::Mean, |_, _| {}).unwrap();
     let ev = evaluate(&out.estimate, &sim.truth, true, &EvalOptions::default());
     println!("{kind:?} ids={ids} {version:?}\n{ev}");
-    (ev.team.ate_rmse, ev.team.landmark_rmse.unwrap(), ev.team.landmarks_spurious)
+    (
+        ev.team.ate_rmse,
+        ev.team.landmark_rmse.unwrap(),
+        ev.team.landmarks_spurious,
+    )
 }
 
 #[test]
@@ -33,17 +37,24 @@ fn accurate_in_2d_and_3d_with_known_and_unknown_ids() {
     for kind in [LandmarkKind::RangeBearing2d, LandmarkKind::Point3d] {
         for version in [FastSlamVersion::V1, FastSlamVersion::V2] {
             let (ate, lm, _) = run_and_eval(kind, true, version);
-            assert!(ate < 0.25 && lm < 0.25, "{kind:?} {version:?}: ATE {ate}, landmarks {lm}");
+            assert!(
+                ate < 0.25 && lm < 0.25,
+                "{kind:?} {version:?}: ATE {ate}, landmarks {lm}"
+            );
         }
         let (ate, lm, spurious) = run_and_eval(kind, false, FastSlamVersion::V2);
-        assert!(ate < 0.3 && lm < 0.3, "{kind:?} unknown ids: ATE {ate}, landmarks {lm}");
+        assert!(
+            ate < 0.3 && lm < 0.3,
+            "{kind:?} unknown ids: ATE {ate}, landmarks {lm}"
+        );
         assert!(spurious <= 3, "{kind:?}: {spurious} spurious landmarks");
     }
 }
 
 fn one_robot(cfg: FilterConfig) -> FastSlam {
     let mut slam = FastSlam::new(cfg).unwrap();
-    slam.add_robot("a", &PoseGaussian::exact(Pose2::default()), 0.0).unwrap();
+    slam.add_robot("a", &PoseGaussian::exact(Pose2::default()), 0.0)
+        .unwrap();
     slam
 }
 
@@ -59,7 +70,10 @@ fn rec(seq: u64, t: f64, landmarks: Vec<LandmarkObservation>) -> Record {
 }
 
 fn obs(z: [f64; 2]) -> LandmarkObservation {
-    LandmarkObservation { id: None, z: z.to_vec() }
+    LandmarkObservation {
+        id: None,
+        z: z.to_vec(),
+    }
 }
 
 #[test]
@@ -67,17 +81,26 @@ fn spurious_landmark_is_removed_real_one_kept() {
     let mut cfg = FilterConfig {
         particles: 20,
         association: Association::Unknown,
-        sensor_range: Some(fleetslam_core::log::SensorRange { max_range: 10.0, fov: 3.0 }),
+        sensor_range: Some(fleetslam_core::log::SensorRange {
+            max_range: 10.0,
+            fov: 3.0,
+        }),
         ..FilterConfig::default()
     };
     cfg.motion_noise.trans_per_sqrt_s = 0.0;
     cfg.motion_noise.rot_per_sqrt_s = 0.0;
     let mut slam = one_robot(cfg);
     // A real landmark at (3, 0) seen every time; a ghost at (3, 2) seen once.
-    slam.step(&rec(0, 0.2, vec![obs([3.0, 0.0]), obs([13f64.sqrt(), (2.0f64).atan2(3.0)])])).unwrap();
+    slam.step(&rec(
+        0,
+        0.2,
+        vec![obs([3.0, 0.0]), obs([13f64.sqrt(), (2.0f64).atan2(3.0)])],
+    ))
+    .unwrap();
     assert_eq!(slam.estimate().landmarks.len(), 2);
     for k in 1..10 {
-        slam.step(&rec(k, 0.2 * (k + 1) as f64, vec![obs([3.0, 0.0])])).unwrap();
+        slam.step(&rec(k, 0.2 * (k + 1) as f64, vec![obs([3.0, 0.0])]))
+            .unwrap();
     }
     let est = slam.estimate();
     assert_eq!(est.landmarks.len(), 1, "{:?}", est.landmarks);
@@ -94,7 +117,8 @@ fn robot_added_late_at_a_known_pose_maps_in_the_shared_map() {
     cfg.particles = 60;
     let mut slam = FastSlam::new(cfg).unwrap();
     let first = &log.header.robots[0];
-    slam.add_robot(&first.id, first.start.as_ref().unwrap(), 0.0).unwrap();
+    slam.add_robot(&first.id, first.start.as_ref().unwrap(), 0.0)
+        .unwrap();
     let (early, late): (Vec<_>, Vec<_>) = log.records.iter().partition(|r| r.t < 10.0);
     for r in early.iter().filter(|r| r.robot == first.id) {
         slam.step(r).unwrap();
@@ -107,7 +131,12 @@ fn robot_added_late_at_a_known_pose_maps_in_the_shared_map() {
         .find(|p| p.t >= 10.0 - 1e-9)
         .unwrap()
         .pose;
-    slam.add_robot(second, &PoseGaussian::diagonal(truth, 0.05, 0.05, 0.02), 10.0 - 1e-9).unwrap();
+    slam.add_robot(
+        second,
+        &PoseGaussian::diagonal(truth, 0.05, 0.05, 0.02),
+        10.0 - 1e-9,
+    )
+    .unwrap();
     for r in late {
         slam.step(r).unwrap();
     }
@@ -121,25 +150,44 @@ fn robot_added_late_at_a_known_pose_maps_in_the_shared_map() {
 
 #[test]
 fn bad_records_are_refused_without_changing_the_filter() {
-    let mut slam = one_robot(FilterConfig { particles: 10, ..FilterConfig::default() });
+    let mut slam = one_robot(FilterConfig {
+        particles: 10,
+        ..FilterConfig::default()
+    });
     slam.step(&rec(0, 1.0, vec![obs([2.0, 0.1])])).unwrap();
     let before = slam.snapshot();
     let mut unknown = rec(1, 2.0, vec![]);
     unknown.robot = "ghost".into();
-    assert!(slam.step(&unknown).unwrap_err().to_string().contains("ghost"));
-    assert!(slam.step(&rec(1, 0.5, vec![])).unwrap_err().to_string().contains("older"));
+    assert!(
+        slam.step(&unknown)
+            .unwrap_err()
+            .to_string()
+            .contains("ghost")
+    );
+    assert!(
+        slam.step(&rec(1, 0.5, vec![]))
+            .unwrap_err()
+            .to_string()
+            .contains("older")
+    );
     let nan = rec(1, 2.0, vec![obs([f64::NAN, 0.0])]);
     assert!(slam.step(&nan).is_err());
     let mut odo = rec(1, 2.0, vec![]);
     odo.motion = Some(Motion::Odometry([1.0, 0.0, 0.0]));
-    assert!(slam.step(&odo).unwrap_err().to_string().contains("motion model"));
+    assert!(
+        slam.step(&odo)
+            .unwrap_err()
+            .to_string()
+            .contains("motion model")
+    );
     assert_eq!(slam.snapshot(), before);
 }
 
 #[test]
 fn updater_of_another_kind_is_refused() {
     let ekf3 = fleetslam_core::ekf::EkfUpdater::new(LandmarkKind::Point3d, &Default::default());
-    let err = FastSlam::with_updater(FilterConfig::default(), std::sync::Arc::new(ekf3)).unwrap_err();
+    let err =
+        FastSlam::with_updater(FilterConfig::default(), std::sync::Arc::new(ekf3)).unwrap_err();
     assert!(err.to_string().contains("point3d"), "{err}");
 }
 

@@ -21,7 +21,12 @@ pub fn dataset(name: &str) -> Option<PathBuf> {
 }
 
 /// A small simulated log: `robots` robots for `duration` seconds.
-pub fn small_sim(robots: usize, duration: f64, seed: u64, f: impl FnOnce(&mut SimConfig)) -> Simulated {
+pub fn small_sim(
+    robots: usize,
+    duration: f64,
+    seed: u64,
+    f: impl FnOnce(&mut SimConfig),
+) -> Simulated {
     let mut cfg = SimConfig {
         robots,
         duration,

@@ -15,6 +15,8 @@ use fleetslam_data::sim::{SimConfig, simulate};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 
+mod replay;
+
 #[derive(Debug, Parser)]
 #[command(name = "fleetslam", version, about = "Multi-robot shared-map FastSLAM")]
 struct Cli {
@@ -35,6 +37,79 @@ enum Command {
     Run(RunArgs),
     /// Compare an estimate directory with ground truth: prints and writes evaluation.json.
     Evaluate(EvaluateArgs),
+    /// Run the server: HTTP and websocket API on the embedded store (or PostgreSQL).
+    Serve(ServeArgs),
+    /// Play a log into a server as k concurrent robot clients, one per robot.
+    Replay(ReplayArgs),
+    /// The main job: a server with simulated robots posting to it over HTTP.
+    Demo(DemoArgs),
+}
+
+#[derive(Debug, Args)]
+struct ServeArgs {
+    /// A TOML file (see fleetslam.example.toml); FLEETSLAM_* variables and flags override it.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    #[arg(long)]
+    bind: Option<String>,
+    #[arg(long)]
+    data_dir: Option<PathBuf>,
+    #[arg(long)]
+    database_url: Option<String>,
+    #[arg(long)]
+    admin_token: Option<String>,
+}
+
+#[derive(Debug, Args)]
+struct ReplayArgs {
+    log: PathBuf,
+    /// The server's base URL.
+    #[arg(long, default_value = "http://127.0.0.1:8080")]
+    server: String,
+    /// Join an existing run (its robots must not be registered yet) instead of creating one.
+    #[arg(long)]
+    run: Option<String>,
+    /// Data time runs this many times faster than real time.
+    #[arg(long, default_value_t = 1.0)]
+    speed: f64,
+    /// As fast as the server acknowledges (ignores --speed).
+    #[arg(long)]
+    fast: bool,
+    /// Most records per request.
+    #[arg(long, default_value_t = 50)]
+    batch: usize,
+    #[arg(long)]
+    particles: Option<usize>,
+    #[arg(long)]
+    seed: Option<u64>,
+    /// A JSON or TOML file of FilterConfig fields for the new run.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    #[arg(long, env = "FLEETSLAM_ADMIN_TOKEN")]
+    admin_token: Option<String>,
+    /// Leave the run open when the log is done (default: end it if the replay created it).
+    #[arg(long)]
+    keep_open: bool,
+}
+
+#[derive(Debug, Args)]
+struct DemoArgs {
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    bind: String,
+    #[arg(long, default_value = "data")]
+    data_dir: PathBuf,
+    #[arg(long, default_value_t = 4)]
+    robots: usize,
+    #[arg(long, default_value_t = 200)]
+    particles: usize,
+    /// Simulated seconds per run; the demo starts a new run when one ends.
+    #[arg(long, default_value_t = 300.0)]
+    duration: f64,
+    /// Data time runs this many times faster than real time.
+    #[arg(long, default_value_t = 1.0)]
+    speed: f64,
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
 }
 
 #[derive(Debug, Args)]
@@ -166,14 +241,19 @@ fn main() -> Result<()> {
         Command::Import { dataset } => cmd_import(dataset),
         Command::Run(a) => cmd_run(a),
         Command::Evaluate(a) => cmd_evaluate(a),
+        Command::Serve(a) => runtime()?.block_on(cmd_serve(a)),
+        Command::Replay(a) => runtime()?.block_on(cmd_replay(a)),
+        Command::Demo(a) => runtime()?.block_on(cmd_demo(a)),
     }
 }
 
 /// Reads a JSON or TOML file (by extension) into a JSON value, for layering over defaults.
 fn read_config_value(path: &Path) -> Result<serde_json::Value> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     let v = if path.extension().is_some_and(|e| e == "toml") {
-        let t: toml::Value = toml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+        let t: toml::Value =
+            toml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
         serde_json::to_value(t)?
     } else {
         serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?
@@ -193,13 +273,17 @@ fn merge(base: &mut serde_json::Value, patch: serde_json::Value) {
     }
 }
 
-fn layered<T: serde::Serialize + serde::de::DeserializeOwned>(base: &T, file: Option<&Path>) -> Result<T> {
+fn layered<T: serde::Serialize + serde::de::DeserializeOwned>(
+    base: &T,
+    file: Option<&Path>,
+) -> Result<T> {
     let Some(path) = file else {
         return Ok(serde_json::from_value(serde_json::to_value(base)?)?);
     };
     let mut v = serde_json::to_value(base)?;
     merge(&mut v, read_config_value(path)?);
-    serde_json::from_value(v).with_context(|| format!("invalid configuration in {}", path.display()))
+    serde_json::from_value(v)
+        .with_context(|| format!("invalid configuration in {}", path.display()))
 }
 
 fn cmd_simulate(a: SimulateArgs) -> Result<()> {
@@ -227,24 +311,49 @@ fn cmd_simulate(a: SimulateArgs) -> Result<()> {
 
 fn cmd_import(d: ImportCommand) -> Result<()> {
     let (imported, out) = match d {
-        ImportCommand::Mrclam { dir, out, no_ids, duration, odometry_delay } => {
-            let opts = MrclamOptions { no_ids, duration, odometry_delay, ..Default::default() };
+        ImportCommand::Mrclam {
+            dir,
+            out,
+            no_ids,
+            duration,
+            odometry_delay,
+        } => {
+            let opts = MrclamOptions {
+                no_ids,
+                duration,
+                odometry_delay,
+                ..Default::default()
+            };
             (import_mrclam(&dir, &opts)?, out)
         }
-        ImportCommand::VictoriaPark { dir, out, duration, max_range } => {
-            let opts = VictoriaOptions { duration, max_range, ..Default::default() };
+        ImportCommand::VictoriaPark {
+            dir,
+            out,
+            duration,
+            max_range,
+        } => {
+            let opts = VictoriaOptions {
+                duration,
+                max_range,
+                ..Default::default()
+            };
             (import_victoria_park(&dir, &opts)?, out)
         }
     };
     imported.write(&out)?;
     println!("{}", imported.report);
-    println!("wrote {}/log.ndjson and {}/truth/", out.display(), out.display());
+    println!(
+        "wrote {}/log.ndjson and {}/truth/",
+        out.display(),
+        out.display()
+    );
     Ok(())
 }
 
 fn cmd_run(a: RunArgs) -> Result<()> {
     let log = Log::read_path(&a.log).with_context(|| format!("reading {}", a.log.display()))?;
-    let mut cfg: FilterConfig = layered(&FilterConfig::from_header(&log.header), a.config.as_deref())?;
+    let mut cfg: FilterConfig =
+        layered(&FilterConfig::from_header(&log.header), a.config.as_deref())?;
     if let Some(n) = a.particles {
         cfg.particles = n;
     }
@@ -252,27 +361,44 @@ fn cmd_run(a: RunArgs) -> Result<()> {
         cfg.seed = s;
     }
     if let Some(v) = a.version.as_deref() {
-        cfg.version = if v == "1" { FastSlamVersion::V1 } else { FastSlamVersion::V2 };
+        cfg.version = if v == "1" {
+            FastSlamVersion::V1
+        } else {
+            FastSlamVersion::V2
+        };
     }
     if let Some(v) = a.association.as_deref() {
-        cfg.association = if v == "known" { Association::Known } else { Association::Unknown };
+        cfg.association = if v == "known" {
+            Association::Known
+        } else {
+            Association::Unknown
+        };
     }
     if a.updater != "ekf" {
         bail!("unknown updater {:?}: this build has `ekf`", a.updater);
     }
-    let which = if a.trajectory == "best" { TrajectoryEstimate::Best } else { TrajectoryEstimate::Mean };
+    let which = if a.trajectory == "best" {
+        TrajectoryEstimate::Best
+    } else {
+        TrajectoryEstimate::Mean
+    };
     let threads = a.threads.unwrap_or(0);
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()?;
     let mut slam = FastSlam::new(cfg).context("configuring the filter")?;
     let bar = ProgressBar::new(log.records.len() as u64);
     bar.set_style(ProgressStyle::with_template(
         "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} records ({per_sec}, eta {eta})",
     )?);
     let out = pool.install(|| {
-        run_log(&mut slam, &log, which, |done, _| bar.set_position(done as u64))
+        run_log(&mut slam, &log, which, |done, _| {
+            bar.set_position(done as u64)
+        })
     })?;
     bar.finish_and_clear();
-    out.write(&a.out).with_context(|| format!("writing {}", a.out.display()))?;
+    out.write(&a.out)
+        .with_context(|| format!("writing {}", a.out.display()))?;
     let m = &out.metrics;
     println!(
         "{} steps in {:.2} s (step p50 {:.3} ms, p95 {:.3} ms, max {:.3} ms); {} landmark updates at {:.0} ns each; {} landmarks; {} resamples -> {}",
@@ -306,4 +432,161 @@ fn cmd_evaluate(a: EvaluateArgs) -> Result<()> {
         .with_context(|| format!("writing {}", path.display()))?;
     println!("wrote {}", path.display());
     Ok(())
+}
+
+fn runtime() -> Result<tokio::runtime::Runtime> {
+    init_tracing();
+    Ok(tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?)
+}
+
+/// Logs to stderr, filtered by RUST_LOG (default: info for fleetslam, warn otherwise).
+fn init_tracing() {
+    use tracing_subscriber::EnvFilter;
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| {
+        EnvFilter::new("warn,fleetslam=info,fleetslam_server=info,fleetslam_store=info")
+    });
+    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_ansi(ansi)
+        .with_writer(std::io::stderr)
+        .try_init();
+}
+
+async fn cmd_serve(a: ServeArgs) -> Result<()> {
+    use fleetslam_server::config::ServerConfig;
+    let mut cfg = ServerConfig::load(a.config.as_deref(), |k| std::env::var(k).ok())
+        .map_err(anyhow::Error::msg)?;
+    if let Some(v) = a.bind {
+        cfg.bind = v;
+    }
+    if let Some(v) = a.data_dir {
+        cfg.data_dir = v;
+    }
+    if let Some(v) = a.database_url {
+        cfg.database_url = Some(v);
+    }
+    if let Some(v) = a.admin_token {
+        cfg.admin_token = Some(v);
+    }
+    let running = fleetslam_server::server::start(&cfg).await?;
+    println!(
+        "fleetslam serving on http://{} (store: {})",
+        running.addr,
+        running.store.backend()
+    );
+    tokio::select! {
+        r = tokio::signal::ctrl_c() => { r?; println!("stopping"); }
+    }
+    running.stop().await
+}
+
+fn replay_options(a: &ReplayArgs) -> Result<replay::ReplayOptions> {
+    let mut config = match &a.config {
+        Some(p) => read_config_value(p)?,
+        None => serde_json::json!({}),
+    };
+    if let Some(n) = a.particles {
+        config["particles"] = n.into();
+    }
+    if let Some(s) = a.seed {
+        config["seed"] = s.into();
+    }
+    if !(a.speed.is_finite() && a.speed > 0.0) {
+        bail!("--speed must be > 0, got {}", a.speed);
+    }
+    Ok(replay::ReplayOptions {
+        server: a.server.clone(),
+        run: a.run.clone(),
+        config,
+        admin_token: a.admin_token.clone(),
+        pace: if a.fast {
+            replay::Pace::Fast
+        } else {
+            replay::Pace::Scaled(a.speed)
+        },
+        batch: a.batch,
+        progress: true,
+    })
+}
+
+async fn end_run(server: &str, run: &str, admin: Option<&str>) -> Result<()> {
+    let mut req = reqwest::Client::new().post(format!(
+        "{}/v1/runs/{run}/end",
+        server.trim_end_matches('/')
+    ));
+    if let Some(t) = admin {
+        req = req.bearer_auth(t);
+    }
+    let resp = req.send().await?;
+    if !resp.status().is_success() {
+        bail!("ending run {run}: {}", resp.status());
+    }
+    Ok(())
+}
+
+async fn cmd_replay(a: ReplayArgs) -> Result<()> {
+    let log = Log::read_path(&a.log).with_context(|| format!("reading {}", a.log.display()))?;
+    let o = replay_options(&a)?;
+    let (run, tokens) = replay::setup(&log, &o).await?;
+    println!("run {run}");
+    let summary = replay::play(&log, &run, tokens, &o).await?;
+    if a.run.is_none() && !a.keep_open {
+        end_run(&a.server, &run, a.admin_token.as_deref()).await?;
+    }
+    println!("{summary}");
+    Ok(())
+}
+
+async fn cmd_demo(a: DemoArgs) -> Result<()> {
+    let cfg = fleetslam_server::config::ServerConfig {
+        bind: a.bind.clone(),
+        data_dir: a.data_dir.clone(),
+        ..Default::default()
+    };
+    let running = fleetslam_server::server::start(&cfg).await?;
+    let server = format!("http://{}", running.addr);
+    println!(
+        "fleetslam demo: server on {server} (store: {} in {})",
+        running.store.backend(),
+        a.data_dir.display()
+    );
+    let demo = async {
+        let mut seed = a.seed;
+        loop {
+            let sim = simulate(&SimConfig {
+                robots: a.robots,
+                landmarks: 30,
+                duration: a.duration,
+                seed,
+                ..SimConfig::default()
+            })?;
+            let o = replay::ReplayOptions {
+                server: server.clone(),
+                run: None,
+                config: serde_json::json!({"particles": a.particles, "seed": seed}),
+                admin_token: None,
+                pace: replay::Pace::Scaled(a.speed),
+                batch: 50,
+                progress: false,
+            };
+            let (run, tokens) = replay::setup(&sim.log, &o).await?;
+            println!("run {run}: {} simulated robots posting over HTTP", a.robots);
+            println!("  state: {server}/v1/runs/{run}/state");
+            println!("  live:  ws://{}/v1/runs/{run}/live", running.addr);
+            let summary = replay::play(&sim.log, &run, tokens, &o).await?;
+            end_run(&server, &run, None).await?;
+            println!("{summary}");
+            seed += 1;
+        }
+        #[allow(unreachable_code)]
+        Ok::<(), anyhow::Error>(())
+    };
+    tokio::select! {
+        r = demo => r?,
+        r = tokio::signal::ctrl_c() => { r?; println!("stopping"); }
+    }
+    running.stop().await
 }

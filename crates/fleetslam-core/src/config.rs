@@ -45,12 +45,12 @@ pub struct AssociationParams {
     /// three (team ATE 0.89 m) where no gate gave 0.18-0.30 m.
     pub outlier: Option<f64>,
     /// Existence log-odds added per observation of a landmark. Default 1.0.
-    pub existence_hit: f32,
+    pub existence_hit: f64,
     /// Existence log-odds removed when a landmark in view was not observed. Default 0.4.
     /// Higher removes spurious landmarks faster, and real ones missed by the detector too.
-    pub existence_miss: f32,
+    pub existence_miss: f64,
     /// Existence log-odds cap, so that long-lived landmarks can still be removed. Default 8.
-    pub existence_max: f32,
+    pub existence_max: f64,
 }
 
 impl Default for AssociationParams {
@@ -132,8 +132,15 @@ impl FilterConfig {
             ackermann: h.ackermann.unwrap_or(d.ackermann),
             motion_noise: h.motion_noise.unwrap_or(d.motion_noise),
             sensor_noise: h.sensor_noise.unwrap_or(d.sensor_noise),
-            sighting_noise: h.sighting_noise.or(h.sensor_noise).unwrap_or(d.sighting_noise),
-            association: if h.landmark_ids { Association::Known } else { Association::Unknown },
+            sighting_noise: h
+                .sighting_noise
+                .or(h.sensor_noise)
+                .unwrap_or(d.sighting_noise),
+            association: if h.landmark_ids {
+                Association::Known
+            } else {
+                Association::Unknown
+            },
             sensor_range: h.sensor_range,
             ..d
         }
@@ -142,23 +149,34 @@ impl FilterConfig {
     pub fn validate(&self) -> Result<(), ConfigError> {
         let err = |s: String| Err(ConfigError(s));
         if self.particles == 0 || self.particles > 1_000_000 {
-            return err(format!("particles must be between 1 and 1000000, got {}", self.particles));
+            return err(format!(
+                "particles must be between 1 and 1000000, got {}",
+                self.particles
+            ));
         }
         if self.batch_size == 0 {
             return err("batch_size must be at least 1".into());
         }
-        if !(self.resample_threshold.is_finite() && (0.0..=1.0).contains(&self.resample_threshold)) {
+        if !(self.resample_threshold.is_finite() && (0.0..=1.0).contains(&self.resample_threshold))
+        {
             return err(format!(
                 "resample_threshold must be a fraction between 0 and 1, got {}",
                 self.resample_threshold
             ));
         }
         self.motion_noise.validate().map_err(ConfigError)?;
-        self.sensor_noise.validate("sensor_noise").map_err(ConfigError)?;
-        self.sighting_noise.validate("sighting_noise").map_err(ConfigError)?;
+        self.sensor_noise
+            .validate("sensor_noise")
+            .map_err(ConfigError)?;
+        self.sighting_noise
+            .validate("sighting_noise")
+            .map_err(ConfigError)?;
         let a = &self.association_params;
         if !(a.gate.is_finite() && a.gate > 0.0) {
-            return err(format!("association_params.gate must be > 0, got {}", a.gate));
+            return err(format!(
+                "association_params.gate must be > 0, got {}",
+                a.gate
+            ));
         }
         if !(a.new_landmark.is_finite() && a.new_landmark >= a.gate) {
             return err(format!(
@@ -169,7 +187,9 @@ impl FilterConfig {
         if let Some(o) = a.outlier
             && !(o.is_finite() && o > 0.0)
         {
-            return err(format!("association_params.outlier must be > 0 or null, got {o}"));
+            return err(format!(
+                "association_params.outlier must be > 0 or null, got {o}"
+            ));
         }
         if !(a.existence_hit >= 0.0 && a.existence_miss >= 0.0 && a.existence_max > 0.0) {
             return err("association_params.existence_* must be >= 0 (existence_max > 0)".into());
@@ -185,7 +205,10 @@ impl FilterConfig {
         if self.motion_model == MotionModel::Ackermann
             && !(k.wheel_base.is_finite() && k.wheel_base > 0.0)
         {
-            return err(format!("ackermann.wheel_base must be > 0, got {}", k.wheel_base));
+            return err(format!(
+                "ackermann.wheel_base must be > 0, got {}",
+                k.wheel_base
+            ));
         }
         Ok(())
     }
@@ -198,7 +221,10 @@ mod tests {
     #[test]
     fn default_is_valid_and_errors_name_fields() {
         FilterConfig::default().validate().unwrap();
-        let bad = FilterConfig { particles: 0, ..Default::default() };
+        let bad = FilterConfig {
+            particles: 0,
+            ..Default::default()
+        };
         assert!(bad.validate().unwrap_err().0.contains("particles"));
         let mut bad = FilterConfig::default();
         bad.sensor_noise.range = -1.0;
@@ -208,7 +234,10 @@ mod tests {
     #[test]
     fn version_spellings() {
         for s in ["\"1\"", "\"v1\"", "\"1.0\""] {
-            assert_eq!(serde_json::from_str::<FastSlamVersion>(s).unwrap(), FastSlamVersion::V1);
+            assert_eq!(
+                serde_json::from_str::<FastSlamVersion>(s).unwrap(),
+                FastSlamVersion::V1
+            );
         }
         let e = serde_json::from_str::<FilterConfig>(r#"{"version":"3"}"#).unwrap_err();
         assert!(e.to_string().contains("expected one of"), "{e}");

@@ -305,31 +305,34 @@ impl FastSlam {
     ) -> Result<usize, FilterError> {
         self.check_new_robot(id, t0)?;
         if !start.mean.is_finite() || start.cov.iter().flatten().any(|v| !v.is_finite()) {
-            return Err(FilterError::InvalidStart(format!("{start:?} has a non-finite number")));
+            return Err(FilterError::InvalidStart(format!(
+                "{start:?} has a non-finite number"
+            )));
         }
         let cov = Matrix3::from_fn(|i, j| 0.5 * (start.cov[i][j] + start.cov[j][i]));
         let chol = if cov.iter().all(|v| *v == 0.0) {
             None
         } else {
-            Some(
-                cholesky_psd(&cov).ok_or_else(|| {
-                    FilterError::InvalidStart("covariance is not positive semi-definite".into())
-                })?,
-            )
+            Some(cholesky_psd(&cov).ok_or_else(|| {
+                FilterError::InvalidStart("covariance is not positive semi-definite".into())
+            })?)
         };
         let (seed, step) = (self.config.seed, self.step);
         let mean = start.mean;
-        self.particles.par_iter_mut().enumerate().for_each(|(i, p)| {
-            let pose = match &chol {
-                None => mean,
-                Some(l) => {
-                    let mut rng = stream(seed, step, LANE_ADD_ROBOT + i as u64);
-                    let e = l * normal3(&mut rng);
-                    Pose2::new(mean.x + e[0], mean.y + e[1], wrap_angle(mean.theta + e[2]))
-                }
-            };
-            p.poses.push(pose);
-        });
+        self.particles
+            .par_iter_mut()
+            .enumerate()
+            .for_each(|(i, p)| {
+                let pose = match &chol {
+                    None => mean,
+                    Some(l) => {
+                        let mut rng = stream(seed, step, LANE_ADD_ROBOT + i as u64);
+                        let e = l * normal3(&mut rng);
+                        Pose2::new(mean.x + e[0], mean.y + e[1], wrap_angle(mean.theta + e[2]))
+                    }
+                };
+                p.poses.push(pose);
+            });
         Ok(self.finish_add_robot(id, t0))
     }
 
@@ -351,7 +354,9 @@ impl FastSlam {
         if samples.iter().any(|s| !s.is_finite())
             || weights.iter().any(|w| !(w.is_finite() && *w >= 0.0))
         {
-            return Err(FilterError::InvalidStart("non-finite sample or negative weight".into()));
+            return Err(FilterError::InvalidStart(
+                "non-finite sample or negative weight".into(),
+            ));
         }
         let mut cum: Vec<f64> = weights
             .iter()
@@ -366,23 +371,30 @@ impl FastSlam {
         }
         cum.iter_mut().for_each(|c| *c /= total);
         let (seed, step) = (self.config.seed, self.step);
-        self.particles.par_iter_mut().enumerate().for_each(|(i, p)| {
-            let u: f64 = stream(seed, step, LANE_ADD_ROBOT + i as u64).random();
-            let k = cum.partition_point(|&c| c < u).min(samples.len() - 1);
-            p.poses.push(samples[k]);
-        });
+        self.particles
+            .par_iter_mut()
+            .enumerate()
+            .for_each(|(i, p)| {
+                let u: f64 = stream(seed, step, LANE_ADD_ROBOT + i as u64).random();
+                let k = cum.partition_point(|&c| c < u).min(samples.len() - 1);
+                p.poses.push(samples[k]);
+            });
         Ok(self.finish_add_robot(id, t0))
     }
 
     fn check_new_robot(&self, id: &str, t0: f64) -> Result<(), FilterError> {
         if id.is_empty() {
-            return Err(FilterError::InvalidStart("robot id must not be empty".into()));
+            return Err(FilterError::InvalidStart(
+                "robot id must not be empty".into(),
+            ));
         }
         if self.robot_index.contains_key(id) {
             return Err(FilterError::DuplicateRobot(id.to_string()));
         }
         if !t0.is_finite() {
-            return Err(FilterError::InvalidStart(format!("start time {t0} is not finite")));
+            return Err(FilterError::InvalidStart(format!(
+                "start time {t0} is not finite"
+            )));
         }
         Ok(())
     }
@@ -445,7 +457,9 @@ impl FastSlam {
                     _ => None,
                 };
                 // Landmarks keep the observations' ids only when association is by id.
-                let id = (cfg.association == Association::Known).then_some(o.id).flatten();
+                let id = (cfg.association == Association::Known)
+                    .then_some(o.id)
+                    .flatten();
                 Obs { z, id, slot }
             })
             .filter(|o| cfg.association == Association::Unknown || o.slot.is_some())
@@ -559,7 +573,11 @@ impl FastSlam {
 
     /// Weighted mean pose of one robot.
     pub fn mean_pose(&self, robot: usize) -> Pose2 {
-        weighted_mean_pose(self.particles.iter().map(|p| (&p.poses[robot], p.log_w.exp())))
+        weighted_mean_pose(
+            self.particles
+                .iter()
+                .map(|p| (&p.poses[robot], p.log_w.exp())),
+        )
     }
 
     /// Up to `max` particles' poses of one robot, evenly spaced over the particle set, with
@@ -638,7 +656,10 @@ impl FastSlam {
     }
 
     /// Restores a filter from a snapshot, with the updater the run uses.
-    pub fn from_snapshot(s: Snapshot, updater: Arc<dyn LandmarkUpdater>) -> Result<Self, FilterError> {
+    pub fn from_snapshot(
+        s: Snapshot,
+        updater: Arc<dyn LandmarkUpdater>,
+    ) -> Result<Self, FilterError> {
         s.config.validate()?;
         check_updater(&s.config, updater.as_ref())?;
         if s.particles.len() != s.config.particles {
@@ -649,9 +670,16 @@ impl FastSlam {
             )));
         }
         if s.particles.iter().any(|p| p.poses.len() != s.robots.len()) {
-            return Err(FilterError::Snapshot("a particle lacks a robot's pose".into()));
+            return Err(FilterError::Snapshot(
+                "a particle lacks a robot's pose".into(),
+            ));
         }
-        let robot_index = s.robots.iter().enumerate().map(|(i, r)| (r.id.clone(), i)).collect();
+        let robot_index = s
+            .robots
+            .iter()
+            .enumerate()
+            .map(|(i, r)| (r.id.clone(), i))
+            .collect();
         Ok(Self {
             config: s.config,
             updater,
@@ -721,7 +749,9 @@ fn predict(
 #[inline]
 fn innovation(kind: LandmarkKind, z: &[f64; 3], zhat: &Vector3<f64>) -> Vector3<f64> {
     match kind {
-        LandmarkKind::RangeBearing2d => Vector3::new(z[0] - zhat[0], wrap_angle(z[1] - zhat[1]), 0.0),
+        LandmarkKind::RangeBearing2d => {
+            Vector3::new(z[0] - zhat[0], wrap_angle(z[1] - zhat[1]), 0.0)
+        }
         LandmarkKind::Point3d => Vector3::new(z[0] - zhat[0], z[1] - zhat[1], z[2] - zhat[2]),
     }
 }
@@ -755,7 +785,8 @@ fn q_matrix(cfg: &FilterConfig) -> Matrix3<f64> {
     match cfg.landmark_kind {
         LandmarkKind::RangeBearing2d => {
             let mut q = Matrix3::zeros();
-            q.fixed_view_mut::<2, 2>(0, 0).copy_from(&cfg.sensor_noise.q2());
+            q.fixed_view_mut::<2, 2>(0, 0)
+                .copy_from(&cfg.sensor_noise.q2());
             q
         }
         LandmarkKind::Point3d => cfg.sensor_noise.q3(),
@@ -846,8 +877,9 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
     let q = q_matrix(cfg);
     let outlier = cfg.association_params.outlier;
     let mut stats = FilterStats::default();
-    let mut rngs: Vec<ChaCha8Rng> =
-        (0..n).map(|i| stream(cfg.seed, ctx.step, (base + i) as u64)).collect();
+    let mut rngs: Vec<ChaCha8Rng> = (0..n)
+        .map(|i| stream(cfg.seed, ctx.step, (base + i) as u64))
+        .collect();
     if ctx.known_len > 0 {
         for p in chunk.iter_mut() {
             p.map.ensure_slots(ctx.known_len);
@@ -950,7 +982,14 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
     let mut inputs: Vec<UpdateInput> = Vec::with_capacity(n);
     let mut outputs: Vec<UpdateOutput> = Vec::with_capacity(n);
     let mut who: Vec<(usize, usize)> = Vec::with_capacity(n);
-    let mut observed: Vec<Vec<usize>> = vec![Vec::new(); if cfg.association == Association::Unknown { n } else { 0 }];
+    let mut observed: Vec<Vec<usize>> = vec![
+        Vec::new();
+        if cfg.association == Association::Unknown {
+            n
+        } else {
+            0
+        }
+    ];
     for (j, o) in ctx.obs.iter().enumerate() {
         inputs.clear();
         who.clear();
@@ -1046,7 +1085,9 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
             if !out.posterior.is_finite() {
                 continue;
             }
-            let Some(old) = p.map.get(s).copied() else { continue };
+            let Some(old) = p.map.get(s).copied() else {
+                continue;
+            };
             let a = &cfg.association_params;
             p.map.set(
                 s,
@@ -1078,7 +1119,11 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
                 let nu = nalgebra::Vector2::new(z[0] - zhat[0], wrap_angle(z[1] - zhat[1]));
                 let m2 = nu.dot(&(qs_inv * nu));
                 let ll = -0.5 * m2 - LN_2PI - 0.5 * logdet;
-                p.log_w += if m2 > bound { outlier_ll(ll, m2, bound) } else { ll };
+                p.log_w += if m2 > bound {
+                    outlier_ll(ll, m2, bound)
+                } else {
+                    ll
+                };
             }
         }
     }

@@ -125,7 +125,10 @@ impl Record {
             return Err("robot must be a non-empty id".into());
         }
         if !self.t.is_finite() || self.t.abs() > 1e12 {
-            return Err(format!("t must be a finite time in seconds, got {}", self.t));
+            return Err(format!(
+                "t must be a finite time in seconds, got {}",
+                self.t
+            ));
         }
         if let Some(m) = &self.motion {
             if m.model() != model {
@@ -195,10 +198,11 @@ impl Log {
             let n = i + 1;
             match &header {
                 None => {
-                    let h: LogHeader = serde_json::from_str(trimmed).map_err(|e| LogError::Parse {
-                        line: n,
-                        message: format!("expected the header: {e}"),
-                    })?;
+                    let h: LogHeader =
+                        serde_json::from_str(trimmed).map_err(|e| LogError::Parse {
+                            line: n,
+                            message: format!("expected the header: {e}"),
+                        })?;
                     if h.fleetslam_log != LOG_VERSION {
                         return Err(LogError::Parse {
                             line: n,
@@ -211,15 +215,20 @@ impl Log {
                     header = Some(h);
                 }
                 Some(h) => {
-                    let r: Record = serde_json::from_str(trimmed)
-                        .map_err(|e| LogError::Parse { line: n, message: e.to_string() })?;
+                    let r: Record = serde_json::from_str(trimmed).map_err(|e| LogError::Parse {
+                        line: n,
+                        message: e.to_string(),
+                    })?;
                     r.validate(h.landmark_kind, h.motion_model)
                         .map_err(|message| LogError::Parse { line: n, message })?;
                     records.push(r);
                 }
             }
         }
-        Ok(Log { header: header.ok_or(LogError::Empty)?, records })
+        Ok(Log {
+            header: header.ok_or(LogError::Empty)?,
+            records,
+        })
     }
 
     pub fn read_path(path: impl AsRef<std::path::Path>) -> Result<Log, LogError> {
@@ -279,7 +288,10 @@ mod tests {
                 seq: 0,
                 t: 0.5,
                 motion: Some(Motion::Velocity(vec![[0.2, 0.0, 0.5]])),
-                landmarks: vec![LandmarkObservation { id: Some(7), z: vec![2.0, 0.1] }],
+                landmarks: vec![LandmarkObservation {
+                    id: Some(7),
+                    z: vec![2.0, 0.1],
+                }],
                 robots: vec![],
             }],
         }
@@ -298,10 +310,17 @@ mod tests {
     fn errors_name_the_line() {
         let mut buf = Vec::new();
         sample().write(&mut buf).unwrap();
-        buf.extend_from_slice(b"{\"robot\":\"1\",\"seq\":1,\"t\":1.0,\"landmarks\":[{\"z\":[1.0]}]}\n");
+        buf.extend_from_slice(
+            b"{\"robot\":\"1\",\"seq\":1,\"t\":1.0,\"landmarks\":[{\"z\":[1.0]}]}\n",
+        );
         let e = Log::read(&buf[..]).unwrap_err().to_string();
-        assert!(e.contains("line 3") && e.contains("[range, bearing]"), "{e}");
-        let e = Log::read(&b"{\"robot\":\"1\"}\n"[..]).unwrap_err().to_string();
+        assert!(
+            e.contains("line 3") && e.contains("[range, bearing]"),
+            "{e}"
+        );
+        let e = Log::read(&b"{\"robot\":\"1\"}\n"[..])
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("line 1") && e.contains("header"), "{e}");
         assert!(matches!(Log::read(&b"\n"[..]), Err(LogError::Empty)));
     }

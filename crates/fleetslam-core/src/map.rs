@@ -25,7 +25,7 @@ pub struct Landmark {
     pub id: Option<u32>,
     /// Existence log-odds: raised when the landmark is observed, lowered when it was in view
     /// but not observed; the landmark is removed when it falls below zero.
-    pub existence: f32,
+    pub existence: f64,
     /// How many observations updated it.
     pub hits: u32,
 }

@@ -68,7 +68,10 @@ impl Motion {
                 return Err(format!("motion segment {i} has a non-finite number: {s:?}"));
             }
             if !matches!(self, Motion::Odometry(_)) && s[2] < 0.0 {
-                return Err(format!("motion segment {i} has a negative duration {}", s[2]));
+                return Err(format!(
+                    "motion segment {i} has a negative duration {}",
+                    s[2]
+                ));
             }
         }
         Ok(())
@@ -214,7 +217,9 @@ impl MotionNoise {
         ];
         for (name, v) in fields {
             if !(v.is_finite() && v >= 0.0) {
-                return Err(format!("motion_noise.{name} must be a finite number >= 0, got {v}"));
+                return Err(format!(
+                    "motion_noise.{name} must be a finite number >= 0, got {v}"
+                ));
             }
         }
         Ok(())
@@ -295,14 +300,22 @@ mod tests {
         let a = n.variances(&Pose2::new(1.0, 0.0, 0.0), 0.0);
         let b = n.variances(&Pose2::new(2.0, 0.0, 0.0), 1.0);
         assert!(b.iter().zip(a.iter()).all(|(b, a)| b > a));
-        let r = n.world_covariance(&Pose2::new(0.0, 0.0, PI / 2.0), &Pose2::new(1.0, 0.0, 0.0), 0.0);
+        let r = n.world_covariance(
+            &Pose2::new(0.0, 0.0, PI / 2.0),
+            &Pose2::new(1.0, 0.0, 0.0),
+            0.0,
+        );
         // Facing +y the longitudinal variance lands on y.
         assert!((r[(1, 1)] - a[0]).abs() < 1e-12 && (r[(0, 0)] - a[1]).abs() < 1e-12);
     }
 
     #[test]
     fn motion_validation() {
-        assert!(Motion::Velocity(vec![[1.0, f64::NAN, 0.1]]).validate().is_err());
+        assert!(
+            Motion::Velocity(vec![[1.0, f64::NAN, 0.1]])
+                .validate()
+                .is_err()
+        );
         assert!(Motion::Velocity(vec![[1.0, 0.0, -0.1]]).validate().is_err());
         assert!(Motion::Odometry([1.0, 0.0, -0.1]).validate().is_ok());
     }

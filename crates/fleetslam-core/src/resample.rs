@@ -28,7 +28,11 @@ pub fn normalize_log_weights(log_w: &mut [f64]) -> f64 {
     let lse = max + sum.ln();
     let mut sq = 0.0;
     for w in log_w.iter_mut() {
-        *w = if w.is_finite() { (*w - lse).max(f64::MIN) } else { f64::MIN };
+        *w = if w.is_finite() {
+            (*w - lse).max(f64::MIN)
+        } else {
+            f64::MIN
+        };
         let p = w.exp();
         sq += p * p;
     }

@@ -73,14 +73,21 @@ impl SensorNoise {
             ("xyz[2]", self.xyz[2]),
         ] {
             if !(v.is_finite() && v > 0.0) {
-                return Err(format!("{prefix}.{name} must be a finite number > 0, got {v}"));
+                return Err(format!(
+                    "{prefix}.{name} must be a finite number > 0, got {v}"
+                ));
             }
         }
         Ok(())
     }
 
     pub fn q2(&self) -> Matrix2<f64> {
-        Matrix2::new(self.range * self.range, 0.0, 0.0, self.bearing * self.bearing)
+        Matrix2::new(
+            self.range * self.range,
+            0.0,
+            0.0,
+            self.bearing * self.bearing,
+        )
     }
 
     pub fn q3(&self) -> Matrix3<f64> {
@@ -154,7 +161,11 @@ pub fn validate_measurement(kind: LandmarkKind, z: &[f64]) -> Result<(), String>
             "a {} measurement has {} numbers ({}), got {}",
             kind.as_str(),
             kind.dim(),
-            if kind == LandmarkKind::RangeBearing2d { "[range, bearing]" } else { "[dx, dy, dz]" },
+            if kind == LandmarkKind::RangeBearing2d {
+                "[range, bearing]"
+            } else {
+                "[dx, dy, dz]"
+            },
             z.len()
         ));
     }
@@ -165,7 +176,9 @@ pub fn validate_measurement(kind: LandmarkKind, z: &[f64]) -> Result<(), String>
         return Err(format!("range must be > 0, got {}", z[0]));
     }
     if z.iter().any(|v| v.abs() > 1e6) {
-        return Err(format!("measurement {z:?} is beyond 1e6 m: check its units"));
+        return Err(format!(
+            "measurement {z:?} is beyond 1e6 m: check its units"
+        ));
     }
     Ok(())
 }
@@ -265,7 +278,10 @@ mod tests {
     #[test]
     fn kind_names() {
         for k in [LandmarkKind::RangeBearing2d, LandmarkKind::Point3d] {
-            assert_eq!(serde_json::to_string(&k).unwrap(), format!("\"{}\"", k.as_str()));
+            assert_eq!(
+                serde_json::to_string(&k).unwrap(),
+                format!("\"{}\"", k.as_str())
+            );
             assert!(LandmarkKind::ALL.contains(&k.as_str()));
         }
     }

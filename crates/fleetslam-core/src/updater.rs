@@ -50,7 +50,10 @@ impl LandmarkGaussian {
     }
 
     pub fn is_finite(&self) -> bool {
-        self.mean.iter().chain(self.cov.iter()).all(|v| v.is_finite())
+        self.mean
+            .iter()
+            .chain(self.cov.iter())
+            .all(|v| v.is_finite())
     }
 }
 

@@ -39,7 +39,10 @@ pub fn robots_in(dir: &Path) -> std::io::Result<Vec<String>> {
     let mut out = Vec::new();
     for e in std::fs::read_dir(dir)? {
         let name = e?.file_name().to_string_lossy().into_owned();
-        if let Some(r) = name.strip_prefix("trajectory_").and_then(|s| s.strip_suffix(".tum")) {
+        if let Some(r) = name
+            .strip_prefix("trajectory_")
+            .and_then(|s| s.strip_suffix(".tum"))
+        {
             out.push(r.to_string());
         }
     }
@@ -88,11 +91,18 @@ pub fn read_tum(r: impl BufRead) -> std::io::Result<Vec<TrajectoryPoint>> {
             .collect::<Result<_, _>>()
             .map_err(|e| invalid(format!("TUM line {}: {e}", i + 1)))?;
         if v.len() != 8 {
-            return Err(invalid(format!("TUM line {}: expected 8 numbers, got {}", i + 1, v.len())));
+            return Err(invalid(format!(
+                "TUM line {}: expected 8 numbers, got {}",
+                i + 1,
+                v.len()
+            )));
         }
         let (qx, qy, qz, qw) = (v[4], v[5], v[6], v[7]);
         let yaw = (2.0 * (qw * qz + qx * qy)).atan2(1.0 - 2.0 * (qy * qy + qz * qz));
-        out.push(TrajectoryPoint { t: v[0], pose: Pose2::new(v[1], v[2], wrap_angle(yaw)) });
+        out.push(TrajectoryPoint {
+            t: v[0],
+            pose: Pose2::new(v[1], v[2], wrap_angle(yaw)),
+        });
     }
     Ok(out)
 }
@@ -134,12 +144,19 @@ pub fn read_landmarks_csv(r: impl BufRead) -> std::io::Result<Vec<LandmarkRow>> 
         }
         let f: Vec<&str> = line.split(',').collect();
         if f.len() < 3 {
-            return Err(invalid(format!("landmarks line {}: expected id,x,y[,z,...]", i + 1)));
+            return Err(invalid(format!(
+                "landmarks line {}: expected id,x,y[,z,...]",
+                i + 1
+            )));
         }
         let id = if f[0].trim().is_empty() {
             None
         } else {
-            Some(f[0].trim().parse::<u32>().map_err(|e| invalid(format!("landmarks line {}: id: {e}", i + 1)))?)
+            Some(
+                f[0].trim()
+                    .parse::<u32>()
+                    .map_err(|e| invalid(format!("landmarks line {}: id: {e}", i + 1)))?,
+            )
         };
         let mut nums = [0.0; 9];
         for (k, s) in f[1..].iter().take(9).enumerate() {
@@ -205,8 +222,14 @@ mod tests {
     #[test]
     fn tum_round_trip() {
         let pts = vec![
-            TrajectoryPoint { t: 1.5, pose: Pose2::new(1.0, -2.0, 3.0) },
-            TrajectoryPoint { t: 2.0, pose: Pose2::new(0.0, 0.5, -3.0) },
+            TrajectoryPoint {
+                t: 1.5,
+                pose: Pose2::new(1.0, -2.0, 3.0),
+            },
+            TrajectoryPoint {
+                t: 2.0,
+                pose: Pose2::new(0.0, 0.5, -3.0),
+            },
         ];
         let mut buf = Vec::new();
         write_tum(&mut buf, &pts).unwrap();
@@ -220,8 +243,16 @@ mod tests {
     #[test]
     fn landmarks_round_trip() {
         let rows = vec![
-            LandmarkRow { id: Some(6), mean: [1.0, 2.0, 0.0], cov: [0.1, 0.0, 0.0, 0.2, 0.0, 0.0] },
-            LandmarkRow { id: None, mean: [-1.0, 2.5, 0.3], cov: [0.0; 6] },
+            LandmarkRow {
+                id: Some(6),
+                mean: [1.0, 2.0, 0.0],
+                cov: [0.1, 0.0, 0.0, 0.2, 0.0, 0.0],
+            },
+            LandmarkRow {
+                id: None,
+                mean: [-1.0, 2.5, 0.3],
+                cov: [0.0; 6],
+            },
         ];
         let mut buf = Vec::new();
         write_landmarks_csv(&mut buf, &rows).unwrap();

@@ -1,7 +1,7 @@
 //! Runs a log through the filter offline and collects what `fleetslam run` writes:
 //! per-robot trajectories, the final landmarks and timing metrics.
 
-use crate::formats::{LandmarkRow, Truth, TrajectoryPoint};
+use crate::formats::{LandmarkRow, TrajectoryPoint, Truth};
 use fleetslam_core::filter::{Estimate, FastSlam, FilterError};
 use fleetslam_core::log::{Log, record_order};
 use serde::{Deserialize, Serialize};
@@ -81,8 +81,11 @@ pub fn run_log(
     let shared_frame = add_header_robots(slam, log)?;
     let mut order: Vec<usize> = (0..log.records.len()).collect();
     order.sort_by(|&a, &b| record_order(&log.records[a], &log.records[b]));
-    let mut trajectories: std::collections::BTreeMap<String, Vec<TrajectoryPoint>> =
-        slam.robots().iter().map(|r| (r.id.clone(), Vec::new())).collect();
+    let mut trajectories: std::collections::BTreeMap<String, Vec<TrajectoryPoint>> = slam
+        .robots()
+        .iter()
+        .map(|r| (r.id.clone(), Vec::new()))
+        .collect();
     for r in slam.robots() {
         if r.last_t.is_finite() && r.last_t > -1e12 {
             let i = slam.robot_index(&r.id).expect("robot just added");
@@ -90,7 +93,10 @@ pub fn run_log(
                 TrajectoryEstimate::Mean => slam.mean_pose(i),
                 TrajectoryEstimate::Best => slam.particles()[slam.best_index()].poses[i],
             };
-            trajectories.get_mut(&r.id).expect("inserted above").push(TrajectoryPoint { t: r.last_t, pose });
+            trajectories
+                .get_mut(&r.id)
+                .expect("inserted above")
+                .push(TrajectoryPoint { t: r.last_t, pose });
         }
     }
     let mut step_ns = Vec::with_capacity(order.len());

@@ -127,7 +127,6 @@ pub fn suggested_sensor_noise() -> SensorNoise {
     }
 }
 
-
 /// One robot's files, parsed and sorted by time.
 struct RobotFiles {
     id: String,

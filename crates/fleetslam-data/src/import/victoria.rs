@@ -507,7 +507,11 @@ mod tests {
         assert_eq!(imp.truth.trajectories["1"].len(), 4466);
         // Scans come every 0.213 s: the 0.25 s default adds no record between them, 0.2 s
         // would add one between most, and says so.
-        assert!(!rep.warnings.iter().any(|w| w.contains("motion-only record")));
+        assert!(
+            !rep.warnings
+                .iter()
+                .any(|w| w.contains("motion-only record"))
+        );
         let opts = VictoriaOptions {
             max_record_interval: 0.2,
             duration: Some(60.0),

@@ -1,0 +1,282 @@
+//! `fleetslam replay`: plays a log into a server as k concurrent robot clients.
+//!
+//! Each robot posts its own records in order with its own token, in real time (scaled) or
+//! as fast as the server accepts. A request that fails for a reason that may pass (no
+//! connection, 5xx, 503 busy) is retried with backoff: records carry sequence numbers and a
+//! repeat is acknowledged again and applied once, so a replay survives a server restart.
+
+use anyhow::{Context, Result, bail};
+use fleetslam_core::log::{Log, Record};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::{Value, json};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+/// How to pace the records.
+#[derive(Debug, Clone, Copy)]
+pub enum Pace {
+    /// Data time divided by this factor (1.0 = real time).
+    Scaled(f64),
+    /// As fast as the server acknowledges.
+    Fast,
+}
+
+#[derive(Debug, Clone)]
+pub struct ReplayOptions {
+    pub server: String,
+    /// Join this run instead of creating one.
+    pub run: Option<String>,
+    /// FilterConfig overrides for a new run.
+    pub config: Value,
+    pub admin_token: Option<String>,
+    pub pace: Pace,
+    /// Most records per request.
+    pub batch: usize,
+    pub progress: bool,
+}
+
+#[derive(Debug, Default, serde::Serialize)]
+pub struct ReplaySummary {
+    pub run: String,
+    pub sent: u64,
+    pub acknowledged: u64,
+    pub duplicates: u64,
+    pub rejected: u64,
+    pub retried: u64,
+    pub wall_time_s: f64,
+    pub records_per_s: f64,
+    pub latency_ms_p50: f64,
+    pub latency_ms_p99: f64,
+}
+
+impl std::fmt::Display for ReplaySummary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "run {}: {} records sent, {} acknowledged ({} repeats), {} rejected, {} requests retried; {:.0} records/s over {:.1} s; ack latency p50 {:.2} ms, p99 {:.2} ms",
+            self.run,
+            self.sent,
+            self.acknowledged,
+            self.duplicates,
+            self.rejected,
+            self.retried,
+            self.records_per_s,
+            self.wall_time_s,
+            self.latency_ms_p50,
+            self.latency_ms_p99
+        )
+    }
+}
+
+struct Counters {
+    acked: AtomicU64,
+    dups: AtomicU64,
+    rejected: AtomicU64,
+    retried: AtomicU64,
+}
+
+fn client() -> Result<reqwest::Client> {
+    Ok(reqwest::Client::builder()
+        .timeout(Duration::from_secs(30))
+        .build()?)
+}
+
+async fn post_json(
+    c: &reqwest::Client,
+    url: &str,
+    token: Option<&str>,
+    body: &Value,
+) -> Result<Value> {
+    let mut req = c.post(url).json(body);
+    if let Some(t) = token {
+        req = req.bearer_auth(t);
+    }
+    let resp = req.send().await.with_context(|| format!("POST {url}"))?;
+    let status = resp.status();
+    let v: Value = resp.json().await.unwrap_or(Value::Null);
+    if !status.is_success() {
+        bail!(
+            "POST {url}: {status}: {}",
+            v["message"].as_str().unwrap_or(&v.to_string())
+        );
+    }
+    Ok(v)
+}
+
+/// Creates (or joins) the run and registers the log's robots; returns run id and tokens.
+pub async fn setup(log: &Log, o: &ReplayOptions) -> Result<(String, Vec<(String, String)>)> {
+    let c = client()?;
+    let base = o.server.trim_end_matches('/');
+    let run = match &o.run {
+        Some(r) => r.clone(),
+        None => {
+            let v = post_json(
+                &c,
+                &format!("{base}/v1/runs"),
+                o.admin_token.as_deref(),
+                &json!({"name": log.header.name, "header": log.header, "config": o.config}),
+            )
+            .await?;
+            v["id"]
+                .as_str()
+                .context("the server returned no run id")?
+                .to_string()
+        }
+    };
+    let mut tokens = Vec::new();
+    for r in &log.header.robots {
+        let v = post_json(
+            &c,
+            &format!("{base}/v1/runs/{run}/robots"),
+            None,
+            &json!({"id": r.id, "start": r.start, "t0": r.t0}),
+        )
+        .await
+        .with_context(|| format!("registering robot {}", r.id))?;
+        tokens.push((
+            r.id.clone(),
+            v["token"].as_str().context("no token")?.to_string(),
+        ));
+    }
+    Ok((run, tokens))
+}
+
+/// Plays the records of `log` into `run` with one client per robot.
+pub async fn play(
+    log: &Log,
+    run: &str,
+    tokens: Vec<(String, String)>,
+    o: &ReplayOptions,
+) -> Result<ReplaySummary> {
+    let base = o.server.trim_end_matches('/').to_string();
+    let total = log.records.len() as u64;
+    let bar = if o.progress {
+        ProgressBar::new(total)
+    } else {
+        ProgressBar::hidden()
+    };
+    bar.set_style(ProgressStyle::with_template(
+        "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} acknowledged ({per_sec})",
+    )?);
+    let counters = Arc::new(Counters {
+        acked: AtomicU64::new(0),
+        dups: AtomicU64::new(0),
+        rejected: AtomicU64::new(0),
+        retried: AtomicU64::new(0),
+    });
+    let t_data0 = log
+        .records
+        .iter()
+        .map(|r| r.t)
+        .fold(f64::INFINITY, f64::min);
+    let start = Instant::now();
+    let mut tasks = Vec::new();
+    for (robot, token) in tokens {
+        let records: Vec<Record> = log
+            .records
+            .iter()
+            .filter(|r| r.robot == robot)
+            .cloned()
+            .collect();
+        let (c, counters, bar, base) = (client()?, counters.clone(), bar.clone(), base.clone());
+        let (run, pace, batch) = (run.to_string(), o.pace, o.batch.max(1));
+        tasks.push(tokio::spawn(async move {
+            let url = format!("{base}/v1/runs/{run}/observations");
+            let mut latencies = Vec::with_capacity(records.len());
+            let mut i = 0;
+            while i < records.len() {
+                let mut n = 1;
+                if let Pace::Scaled(speed) = pace {
+                    let due = Duration::from_secs_f64(((records[i].t - t_data0) / speed).max(0.0));
+                    if let Some(wait) = due.checked_sub(start.elapsed()) {
+                        tokio::time::sleep(wait).await;
+                    }
+                    // Everything already due goes in one request.
+                    while i + n < records.len()
+                        && n < batch
+                        && (records[i + n].t - t_data0) / speed <= start.elapsed().as_secs_f64()
+                    {
+                        n += 1;
+                    }
+                } else {
+                    n = batch.min(records.len() - i);
+                }
+                let chunk = &records[i..i + n];
+                let mut backoff = Duration::from_millis(50);
+                loop {
+                    let t0 = Instant::now();
+                    let sent = c.post(&url).bearer_auth(&token).json(chunk).send().await;
+                    match sent {
+                        Ok(resp)
+                            if resp.status().is_success()
+                                || resp.status() == reqwest::StatusCode::CONFLICT =>
+                        {
+                            let v: Value = resp.json().await.unwrap_or(Value::Null);
+                            latencies.push(t0.elapsed().as_secs_f64() * 1e3);
+                            for a in v["acks"].as_array().into_iter().flatten() {
+                                match a["status"].as_str() {
+                                    Some("stored") => {
+                                        counters.acked.fetch_add(1, Ordering::Relaxed);
+                                    }
+                                    Some("duplicate") => {
+                                        counters.acked.fetch_add(1, Ordering::Relaxed);
+                                        counters.dups.fetch_add(1, Ordering::Relaxed);
+                                    }
+                                    _ => {
+                                        counters.rejected.fetch_add(1, Ordering::Relaxed);
+                                        bar.println(format!(
+                                            "robot {robot}: rejected: {}",
+                                            a["error"]
+                                        ));
+                                    }
+                                }
+                            }
+                            bar.inc(n as u64);
+                            break;
+                        }
+                        Ok(resp)
+                            if resp.status().is_server_error()
+                                || resp.status() == reqwest::StatusCode::TOO_MANY_REQUESTS => {}
+                        Ok(resp) => {
+                            let status = resp.status();
+                            let v: Value = resp.json().await.unwrap_or(Value::Null);
+                            anyhow::bail!("robot {robot}: {status}: {}", v["message"]);
+                        }
+                        Err(_) => {}
+                    }
+                    counters.retried.fetch_add(1, Ordering::Relaxed);
+                    tokio::time::sleep(backoff).await;
+                    backoff = (backoff * 2).min(Duration::from_secs(2));
+                }
+                i += n;
+            }
+            Ok::<_, anyhow::Error>(latencies)
+        }));
+    }
+    let mut lat = Vec::new();
+    for t in tasks {
+        lat.extend(t.await.context("robot client")??);
+    }
+    bar.finish_and_clear();
+    lat.sort_by(f64::total_cmp);
+    let pct = |p: f64| {
+        lat.get(((lat.len().max(1) - 1) as f64 * p).round() as usize)
+            .copied()
+            .unwrap_or(0.0)
+    };
+    let wall = start.elapsed().as_secs_f64();
+    let acked = counters.acked.load(Ordering::Relaxed);
+    Ok(ReplaySummary {
+        run: run.to_string(),
+        sent: total,
+        acknowledged: acked,
+        duplicates: counters.dups.load(Ordering::Relaxed),
+        rejected: counters.rejected.load(Ordering::Relaxed),
+        retried: counters.retried.load(Ordering::Relaxed),
+        wall_time_s: wall,
+        records_per_s: acked as f64 / wall.max(1e-9),
+        latency_ms_p50: pct(0.5),
+        latency_ms_p99: pct(0.99),
+    })
+}

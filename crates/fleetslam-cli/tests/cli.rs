@@ -1,0 +1,159 @@
+//! The `fleetslam` command end to end: simulate, run, evaluate, and clear errors.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn fleetslam(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_fleetslam"))
+        .args(args)
+        .output()
+        .expect("running fleetslam")
+}
+
+fn ok(args: &[&str]) -> String {
+    let out = fleetslam(args);
+    assert!(
+        out.status.success(),
+        "fleetslam {args:?} failed:\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+fn json(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+#[test]
+fn simulate_run_evaluate() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = |p: &str| dir.path().join(p).to_string_lossy().into_owned();
+    ok(&[
+        "simulate",
+        "--robots",
+        "2",
+        "--duration",
+        "20",
+        "--seed",
+        "3",
+        "--out",
+        &d("sim"),
+    ]);
+    assert!(dir.path().join("sim/log.ndjson").is_file());
+    assert!(dir.path().join("sim/truth/trajectory_1.tum").is_file());
+    let printed = ok(&[
+        "run",
+        &d("sim/log.ndjson"),
+        "--particles",
+        "50",
+        "--seed",
+        "1",
+        "--out",
+        &d("run"),
+    ]);
+    assert!(printed.contains("landmark updates"), "{printed}");
+    for f in [
+        "trajectory_1.tum",
+        "trajectory_2.tum",
+        "landmarks.csv",
+        "metrics.json",
+    ] {
+        assert!(dir.path().join("run").join(f).is_file(), "{f} missing");
+    }
+    let m = json(&dir.path().join("run/metrics.json"));
+    for key in [
+        "wall_time_s",
+        "steps",
+        "step_ms_p50",
+        "step_ms_p95",
+        "step_ms_max",
+        "landmark_updates",
+        "ns_per_landmark_update",
+    ] {
+        assert!(m[key].is_number(), "metrics.json lacks {key}: {m}");
+    }
+    assert!(m["landmark_updates"].as_u64().unwrap() > 0);
+    let printed = ok(&["evaluate", &d("run"), "--truth", &d("sim/truth")]);
+    assert!(printed.contains("team"), "{printed}");
+    let e = json(&dir.path().join("run/evaluation.json"));
+    let ate = e["team"]["ate_rmse"].as_f64().unwrap();
+    assert!(ate < 0.3, "team ATE {ate}");
+    assert!(e["robots"]["1"]["ate_rmse"].is_number());
+    assert!(e["team"]["landmark_rmse"].is_number());
+}
+
+#[test]
+fn same_seed_same_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = |p: &str| dir.path().join(p).to_string_lossy().into_owned();
+    ok(&[
+        "simulate",
+        "--robots",
+        "2",
+        "--duration",
+        "10",
+        "--out",
+        &d("sim"),
+    ]);
+    for (out, threads) in [("a", "1"), ("b", "2")] {
+        ok(&[
+            "run",
+            &d("sim/log.ndjson"),
+            "--particles",
+            "40",
+            "--seed",
+            "9",
+            "--threads",
+            threads,
+            "--out",
+            &d(out),
+        ]);
+    }
+    for f in ["trajectory_1.tum", "trajectory_2.tum", "landmarks.csv"] {
+        let a = std::fs::read(dir.path().join("a").join(f)).unwrap();
+        let b = std::fs::read(dir.path().join("b").join(f)).unwrap();
+        assert!(a == b, "{f} differs between 1 and 2 threads");
+    }
+}
+
+#[test]
+fn errors_say_what_was_wrong() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("log.ndjson");
+    std::fs::write(&log, "{\"fleetslam_log\":1,\"landmark_kind\":\"cones\"}\n").unwrap();
+    let out = fleetslam(&[
+        "run",
+        log.to_str().unwrap(),
+        "--out",
+        dir.path().join("o").to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("line 1") && err.contains("cones"), "{err}");
+
+    let out = fleetslam(&["run", "/nonexistent/log.ndjson", "--out", "/tmp/x"]);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/log.ndjson"));
+
+    let cfg = dir.path().join("bad.json");
+    std::fs::write(&cfg, "{\"particles\": 0}").unwrap();
+    ok(&[
+        "simulate",
+        "--robots",
+        "1",
+        "--duration",
+        "2",
+        "--out",
+        dir.path().join("s").to_str().unwrap(),
+    ]);
+    let slog = dir.path().join("s/log.ndjson");
+    let out = fleetslam(&[
+        "run",
+        slog.to_str().unwrap(),
+        "--config",
+        cfg.to_str().unwrap(),
+        "--out",
+        dir.path().join("o").to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("particles"), "{err}");
+}

@@ -1,0 +1,701 @@
+//! One coordinator task per run owns the run's filter.
+//!
+//! Handlers send it commands over a bounded queue (full: the client gets 503 with
+//! Retry-After, nothing stored). The task drains what is queued, checks every record
+//! (repeat, too old, robot not merged yet), stores the accepted ones in ONE append (group
+//! commit: acknowledged means committed), answers each request, feeds the records to the
+//! deterministic [`Merger`], and applies what the merger releases on a blocking thread where
+//! the filter's rayon work runs, off the async runtime. The state it publishes is the
+//! latest estimate in a `watch` channel: readers always see the newest, and a slow reader
+//! never slows the filter or makes memory grow.
+
+use crate::error::ApiError;
+use crate::merge::{MergeError, Merger};
+use fleetslam_core::filter::{FastSlam, StepReport};
+use fleetslam_core::log::Record;
+use fleetslam_core::pose::{Pose2, PoseGaussian};
+use fleetslam_store::{NewObservation, Store};
+use serde::Serialize;
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio::sync::{broadcast, mpsc, oneshot, watch};
+
+/// Limits and rates of a coordinator.
+#[derive(Debug, Clone)]
+pub struct CoordinatorConfig {
+    /// Requests queued per run before the server answers 503.
+    pub queue_capacity: usize,
+    /// How long a silent robot holds the others back in the merge.
+    pub reorder_window: Duration,
+    /// Most state publications per second.
+    pub state_rate_hz: f64,
+    /// Particles per robot in the published state.
+    pub particle_sample: usize,
+}
+
+impl Default for CoordinatorConfig {
+    fn default() -> Self {
+        Self {
+            queue_capacity: 256,
+            reorder_window: Duration::from_secs(2),
+            state_rate_hz: 10.0,
+            particle_sample: 100,
+        }
+    }
+}
+
+/// What became of one posted record.
+#[derive(Debug, Clone, Serialize, PartialEq, utoipa::ToSchema)]
+pub struct RecordAck {
+    pub seq: u64,
+    /// `stored` (new, durable), `duplicate` (stored before; acknowledged again, applied once)
+    /// or `rejected` (not stored; see `error`).
+    pub status: &'static str,
+    /// Arrival number in the run's stored log (stored and duplicate records).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub arrival: Option<i64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+}
+
+/// A robot's live status.
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
+pub struct RobotStatus {
+    pub id: String,
+    /// `mapping` (merged into the filter) or `unknown_pose` (stored, not merged until it is
+    /// localized).
+    pub mode: &'static str,
+    #[schema(value_type = Option<Object>)]
+    pub best: Option<Pose2>,
+    #[schema(value_type = Option<Object>)]
+    pub mean: Option<Pose2>,
+    pub cov: Option<[[f64; 3]; 3]>,
+    /// Highest sequence number acknowledged.
+    pub last_seq: Option<u64>,
+    /// Time of its latest acknowledged record [s].
+    pub last_t: Option<f64>,
+    /// Records acknowledged.
+    pub records: u64,
+    /// Missing sequence numbers below `last_seq` (gaps are accepted and reported).
+    pub gaps: u64,
+    /// Its records buffered in the merge, waiting for the other robots.
+    pub queue_depth: usize,
+    /// How far (in data time) the filter is behind this robot's latest record [s].
+    pub lag_s: f64,
+}
+
+/// A landmark of the best particle.
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
+pub struct LandmarkState {
+    pub slot: usize,
+    pub id: Option<u32>,
+    pub mean: [f64; 3],
+    /// Upper triangle (xx, xy, xz, yy, yz, zz).
+    pub cov: [f64; 6],
+}
+
+/// The published state of a run.
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
+pub struct RunState {
+    pub run: String,
+    pub status: String,
+    /// Records applied to the filter.
+    pub applied: u64,
+    /// Data time of the last applied record [s].
+    pub t: Option<f64>,
+    pub ess: f64,
+    pub particles: usize,
+    pub resamples: u64,
+    pub robots: Vec<RobotStatus>,
+    pub landmarks: Vec<LandmarkState>,
+    /// A subsample of particles per robot: `[x, y, theta, weight]`.
+    pub particle_sample: BTreeMap<String, Vec<[f64; 4]>>,
+    /// Median filter step time over the last publication interval [ms].
+    pub step_ms: f64,
+}
+
+/// Events streamed to websocket clients besides the state.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+#[serde(tag = "event", rename_all = "snake_case")]
+pub enum Event {
+    RobotJoined { robot: String, mode: String },
+    Resampled { applied: u64, ess: f64 },
+    LandmarkAdded { applied: u64, count: usize },
+    LandmarkRemoved { applied: u64, count: usize },
+    RunEnded,
+}
+
+/// An ingest request waiting for its answer.
+type PendingIngest = (
+    Vec<Record>,
+    oneshot::Sender<Result<Vec<RecordAck>, ApiError>>,
+);
+
+/// A request to the coordinator.
+#[derive(Debug)]
+pub enum Command {
+    Ingest {
+        records: Vec<Record>,
+        reply: oneshot::Sender<Result<Vec<RecordAck>, ApiError>>,
+    },
+    AddRobot {
+        robot: String,
+        start: Option<PoseGaussian>,
+        t0: f64,
+        reply: oneshot::Sender<Result<(), ApiError>>,
+    },
+    End {
+        reply: oneshot::Sender<Result<(), ApiError>>,
+    },
+}
+
+/// The handle the HTTP layer keeps for a running run.
+#[derive(Debug, Clone)]
+pub struct RunHandle {
+    pub id: String,
+    tx: mpsc::Sender<Command>,
+    pub state: watch::Receiver<Arc<RunState>>,
+    pub events: broadcast::Sender<Event>,
+}
+
+impl RunHandle {
+    async fn call<T>(
+        &self,
+        make: impl FnOnce(oneshot::Sender<Result<T, ApiError>>) -> Command,
+    ) -> Result<T, ApiError> {
+        let (reply, rx) = oneshot::channel();
+        self.tx.try_send(make(reply)).map_err(|e| match e {
+            mpsc::error::TrySendError::Full(_) => ApiError::Busy {
+                message: format!(
+                    "run {} is busy: its queue is full; nothing was stored, retry later",
+                    self.id
+                ),
+                retry_after_s: 1,
+            },
+            mpsc::error::TrySendError::Closed(_) => {
+                ApiError::Conflict(format!("run {} has ended", self.id))
+            }
+        })?;
+        rx.await
+            .map_err(|_| ApiError::Conflict(format!("run {} has ended", self.id)))?
+    }
+
+    pub async fn ingest(&self, records: Vec<Record>) -> Result<Vec<RecordAck>, ApiError> {
+        self.call(|reply| Command::Ingest { records, reply }).await
+    }
+
+    pub async fn add_robot(
+        &self,
+        robot: String,
+        start: Option<PoseGaussian>,
+        t0: f64,
+    ) -> Result<(), ApiError> {
+        self.call(|reply| Command::AddRobot {
+            robot,
+            start,
+            t0,
+            reply,
+        })
+        .await
+    }
+
+    pub async fn end(&self) -> Result<(), ApiError> {
+        self.call(|reply| Command::End { reply }).await
+    }
+
+    /// Requests waiting in the queue.
+    pub fn queue_depth(&self) -> usize {
+        self.tx.max_capacity() - self.tx.capacity()
+    }
+}
+
+/// Per-robot bookkeeping of acknowledged sequence numbers.
+#[derive(Debug, Default)]
+struct Acked {
+    /// Every seq below this is acknowledged.
+    contiguous: u64,
+    above: BTreeSet<u64>,
+    max: Option<u64>,
+    last_t: Option<f64>,
+    records: u64,
+    merged: bool,
+}
+
+impl Acked {
+    fn contains(&self, seq: u64) -> bool {
+        seq < self.contiguous || self.above.contains(&seq)
+    }
+
+    fn insert(&mut self, seq: u64, t: f64) {
+        self.records += 1;
+        self.max = Some(self.max.map_or(seq, |m| m.max(seq)));
+        self.last_t = Some(self.last_t.map_or(t, |l| l.max(t)));
+        if seq == self.contiguous {
+            self.contiguous += 1;
+            while self.above.remove(&self.contiguous) {
+                self.contiguous += 1;
+            }
+        } else {
+            self.above.insert(seq);
+        }
+    }
+
+    fn gaps(&self) -> u64 {
+        match self.max {
+            Some(m) => m + 1 - self.contiguous - self.above.len() as u64,
+            None => 0,
+        }
+    }
+}
+
+/// Starts the coordinator of a run whose robots are already in `filter` and `store`.
+/// `acked` lists the records already stored (recovery), which are NOT re-applied here.
+pub fn spawn(id: String, filter: FastSlam, store: Store, cfg: CoordinatorConfig) -> RunHandle {
+    let (tx, rx) = mpsc::channel(cfg.queue_capacity.max(1));
+    let (events, _) = broadcast::channel(256);
+    let mut task = Coordinator {
+        id: id.clone(),
+        filter: Some(filter),
+        store,
+        merger: Merger::new(cfg.reorder_window),
+        acked: HashMap::new(),
+        applied: 0,
+        status: "active".into(),
+        step_ns: Vec::new(),
+        last_publish: None,
+        dirty: false,
+        events: events.clone(),
+        state_tx: None,
+        cfg,
+    };
+    let now = Instant::now();
+    if let Some(f) = &task.filter {
+        for r in f.robots() {
+            task.merger.add_robot(&r.id, r.last_t, 0, now);
+            task.acked.insert(
+                r.id.clone(),
+                Acked {
+                    merged: true,
+                    ..Default::default()
+                },
+            );
+        }
+    }
+    let (state_tx, state_rx) = watch::channel(Arc::new(task.build_state()));
+    task.state_tx = Some(state_tx);
+    tokio::spawn(task.run(rx));
+    RunHandle {
+        id,
+        tx,
+        state: state_rx,
+        events,
+    }
+}
+
+struct Coordinator {
+    id: String,
+    /// Taken while a blocking thread steps it.
+    filter: Option<FastSlam>,
+    store: Store,
+    merger: Merger,
+    acked: HashMap<String, Acked>,
+    applied: u64,
+    status: String,
+    step_ns: Vec<u64>,
+    last_publish: Option<Instant>,
+    /// Something changed since the last published state.
+    dirty: bool,
+    events: broadcast::Sender<Event>,
+    state_tx: Option<watch::Sender<Arc<RunState>>>,
+    cfg: CoordinatorConfig,
+}
+
+/// The most requests drained into one group commit.
+const MAX_DRAIN: usize = 64;
+
+impl Coordinator {
+    async fn run(mut self, mut rx: mpsc::Receiver<Command>) {
+        let mut end_reply = None;
+        loop {
+            // Wake up for a silent robot's window, or to publish a state the throttle held.
+            let deadline = match (self.merger.next_deadline(), self.publish_due()) {
+                (Some(a), Some(b)) => Some(a.min(b)),
+                (a, b) => a.or(b),
+            };
+            let first = tokio::select! {
+                cmd = rx.recv() => match cmd { Some(c) => Some(c), None => break },
+                _ = async {
+                    match deadline {
+                        Some(d) => tokio::time::sleep_until(d.into()).await,
+                        None => std::future::pending().await,
+                    }
+                } => None,
+            };
+            let mut cmds: Vec<Command> = first.into_iter().collect();
+            while cmds.len() < MAX_DRAIN {
+                match rx.try_recv() {
+                    Ok(c) => cmds.push(c),
+                    Err(_) => break,
+                }
+            }
+            let mut ingests = Vec::new();
+            let mut ended = false;
+            for c in cmds {
+                match c {
+                    Command::Ingest { records, reply } => ingests.push((records, reply)),
+                    Command::AddRobot {
+                        robot,
+                        start,
+                        t0,
+                        reply,
+                    } => {
+                        let r = self.add_robot(robot, start, t0);
+                        let _ = reply.send(r);
+                    }
+                    Command::End { reply } => {
+                        ended = true;
+                        end_reply = Some(reply);
+                    }
+                }
+            }
+            if !ingests.is_empty() {
+                self.ingest(ingests).await;
+            }
+            let ready = self.merger.ready(Instant::now(), ended);
+            if !ready.is_empty() {
+                self.apply(ready).await;
+            }
+            if ended {
+                self.status = "ended".into();
+                let _ = self.events.send(Event::RunEnded);
+                self.publish(true);
+                // Answered only now, so that the caller sees the final state.
+                if let Some(reply) = end_reply.take() {
+                    let _ = reply.send(Ok(()));
+                }
+                break;
+            }
+            self.publish(false);
+        }
+    }
+
+    fn add_robot(
+        &mut self,
+        robot: String,
+        start: Option<PoseGaussian>,
+        t0: f64,
+    ) -> Result<(), ApiError> {
+        if self.acked.contains_key(&robot) {
+            return Err(ApiError::Conflict(format!(
+                "robot {robot:?} is already registered in this run"
+            )));
+        }
+        let filter = self
+            .filter
+            .as_mut()
+            .expect("the filter is home between steps");
+        let merged = match &start {
+            Some(s) => {
+                filter
+                    .add_robot(&robot, s, t0)
+                    .map_err(|e| ApiError::BadRequest(e.to_string()))?;
+                self.merger.add_robot(&robot, t0, 0, Instant::now());
+                true
+            }
+            None => false,
+        };
+        self.acked.insert(
+            robot.clone(),
+            Acked {
+                merged,
+                ..Default::default()
+            },
+        );
+        let mode = if merged { "mapping" } else { "unknown_pose" };
+        let _ = self.events.send(Event::RobotJoined {
+            robot,
+            mode: mode.into(),
+        });
+        self.publish(true);
+        Ok(())
+    }
+
+    /// Checks, stores (one append for all requests) and acknowledges records.
+    async fn ingest(&mut self, ingests: Vec<PendingIngest>) {
+        // Per request, per record: an ack, or an index into the batch to store.
+        let mut plans: Vec<Vec<Result<RecordAck, usize>>> = Vec::with_capacity(ingests.len());
+        let mut batch: Vec<(Record, String)> = Vec::new();
+        let mut in_batch: BTreeSet<(String, u64)> = BTreeSet::new();
+        for (records, _) in &ingests {
+            let mut plan = Vec::with_capacity(records.len());
+            for r in records {
+                let Some(acked) = self.acked.get(&r.robot) else {
+                    plan.push(Ok(reject(
+                        r.seq,
+                        format!("robot {:?} is not registered in this run", r.robot),
+                    )));
+                    continue;
+                };
+                if acked.contains(r.seq) || in_batch.contains(&(r.robot.clone(), r.seq)) {
+                    plan.push(Ok(RecordAck {
+                        seq: r.seq,
+                        status: "duplicate",
+                        arrival: None,
+                        error: None,
+                    }));
+                    continue;
+                }
+                if acked.merged
+                    && let Err(e) = self.merger.check(r)
+                {
+                    let msg = match e {
+                        MergeError::TooOld { .. } => format!(
+                            "{e} (reorder window {} ms)",
+                            self.cfg.reorder_window.as_millis()
+                        ),
+                        other => other.to_string(),
+                    };
+                    plan.push(Ok(reject(r.seq, msg)));
+                    continue;
+                }
+                match serde_json::to_string(r) {
+                    Ok(body) => {
+                        in_batch.insert((r.robot.clone(), r.seq));
+                        plan.push(Err(batch.len()));
+                        batch.push((r.clone(), body));
+                    }
+                    Err(e) => plan.push(Ok(reject(r.seq, format!("cannot encode: {e}")))),
+                }
+            }
+            plans.push(plan);
+        }
+        let stored = if batch.is_empty() {
+            Ok(Vec::new())
+        } else {
+            let obs = batch
+                .iter()
+                .map(|(r, body)| NewObservation {
+                    robot_id: r.robot.clone(),
+                    seq: r.seq as i64,
+                    t: r.t,
+                    body: body.clone(),
+                })
+                .collect();
+            self.store.append(&self.id, obs).await.map(|o| o.items)
+        };
+        let stored = match stored {
+            Ok(items) => items,
+            Err(e) => {
+                let e = Arc::new(e);
+                for (_, reply) in ingests {
+                    let _ = reply.send(Err(ApiError::internal(anyhow::anyhow!(
+                        "storing records: {e}"
+                    ))));
+                }
+                return;
+            }
+        };
+        // Durable now: update bookkeeping, feed the merger, answer.
+        let now = Instant::now();
+        for ((rec, _), item) in batch.iter().zip(&stored) {
+            let acked = self.acked.get_mut(&rec.robot).expect("checked above");
+            if !item.duplicate {
+                acked.insert(rec.seq, rec.t);
+                if acked.merged {
+                    // Checked above; the only failure left would be a bug.
+                    if let Err(e) = self.merger.push(rec.clone(), now) {
+                        tracing::error!(run = %self.id, error = %e, "merge refused a checked record");
+                    }
+                }
+            }
+        }
+        for ((_, reply), plan) in ingests.into_iter().zip(plans) {
+            let acks = plan
+                .into_iter()
+                .map(|p| match p {
+                    Ok(a) => a,
+                    Err(i) => RecordAck {
+                        seq: batch[i].0.seq,
+                        status: if stored[i].duplicate {
+                            "duplicate"
+                        } else {
+                            "stored"
+                        },
+                        arrival: Some(stored[i].arrival),
+                        error: None,
+                    },
+                })
+                .collect();
+            let _ = reply.send(Ok(acks));
+        }
+    }
+
+    /// Steps the filter through `records` on a blocking thread.
+    async fn apply(&mut self, records: Vec<Record>) {
+        let mut filter = self
+            .filter
+            .take()
+            .expect("the filter is home between steps");
+        let res = tokio::task::spawn_blocking(move || {
+            let mut reports: Vec<(StepReport, u64)> = Vec::with_capacity(records.len());
+            let mut errors = Vec::new();
+            for r in &records {
+                let t0 = Instant::now();
+                match filter.step(r) {
+                    Ok(rep) => reports.push((rep, t0.elapsed().as_nanos() as u64)),
+                    Err(e) => errors.push(format!("record {} of robot {:?}: {e}", r.seq, r.robot)),
+                }
+            }
+            (filter, reports, errors)
+        })
+        .await;
+        let (filter, reports, errors) = match res {
+            Ok(v) => v,
+            Err(e) => {
+                tracing::error!(run = %self.id, error = %e, "filter step panicked; the run stops");
+                self.status = "failed".into();
+                return;
+            }
+        };
+        self.filter = Some(filter);
+        for e in errors {
+            // Records are validated before they are stored; a step error is a bug.
+            tracing::error!(run = %self.id, error = %e, "a stored record could not be applied");
+        }
+        for (rep, ns) in reports {
+            self.applied += 1;
+            self.step_ns.push(ns);
+            if rep.resampled {
+                let _ = self.events.send(Event::Resampled {
+                    applied: self.applied,
+                    ess: rep.ess,
+                });
+            }
+            if rep.landmarks_added > 0 {
+                let _ = self.events.send(Event::LandmarkAdded {
+                    applied: self.applied,
+                    count: rep.landmarks_added,
+                });
+            }
+            if rep.landmarks_removed > 0 {
+                let _ = self.events.send(Event::LandmarkRemoved {
+                    applied: self.applied,
+                    count: rep.landmarks_removed,
+                });
+            }
+        }
+    }
+
+    fn min_gap(&self) -> Duration {
+        Duration::from_secs_f64(1.0 / self.cfg.state_rate_hz.max(0.1))
+    }
+
+    /// When a state held back by the throttle is due.
+    fn publish_due(&self) -> Option<Instant> {
+        match (self.dirty, self.last_publish) {
+            (true, Some(l)) => Some(l + self.min_gap()),
+            (true, None) => Some(Instant::now()),
+            _ => None,
+        }
+    }
+
+    fn publish(&mut self, force: bool) {
+        if !force
+            && self
+                .last_publish
+                .is_some_and(|l| l.elapsed() < self.min_gap())
+        {
+            self.dirty = true;
+            return;
+        }
+        self.dirty = false;
+        self.last_publish = Some(Instant::now());
+        let state = Arc::new(self.build_state());
+        self.step_ns.clear();
+        if let Some(tx) = &self.state_tx {
+            tx.send_replace(state);
+        }
+    }
+
+    fn build_state(&self) -> RunState {
+        let filter = self
+            .filter
+            .as_ref()
+            .expect("the filter is home between steps");
+        let est = filter.estimate();
+        let mut step_ns = self.step_ns.clone();
+        step_ns.sort_unstable();
+        let applied_t = self.merger.applied_t();
+        let mut robots: Vec<RobotStatus> = self
+            .acked
+            .iter()
+            .map(|(id, a)| {
+                let e = est.robots.iter().find(|r| &r.id == id);
+                RobotStatus {
+                    id: id.clone(),
+                    mode: if a.merged { "mapping" } else { "unknown_pose" },
+                    best: e.map(|e| e.best),
+                    mean: e.map(|e| e.mean),
+                    cov: e.map(|e| e.cov),
+                    last_seq: a.max,
+                    last_t: a.last_t,
+                    records: a.records,
+                    gaps: a.gaps(),
+                    queue_depth: self.merger.pending_of(id),
+                    lag_s: match (a.last_t, applied_t) {
+                        (Some(l), Some(t)) => (l - t).max(0.0),
+                        _ => 0.0,
+                    },
+                }
+            })
+            .collect();
+        robots.sort_by(|a, b| a.id.cmp(&b.id));
+        let particle_sample = est
+            .robots
+            .iter()
+            .enumerate()
+            .map(|(i, r)| {
+                let v = filter
+                    .particle_sample(i, self.cfg.particle_sample)
+                    .into_iter()
+                    .map(|(p, w)| [p.x, p.y, p.theta, w])
+                    .collect();
+                (r.id.clone(), v)
+            })
+            .collect();
+        RunState {
+            run: self.id.clone(),
+            status: self.status.clone(),
+            applied: self.applied,
+            t: applied_t,
+            ess: est.ess,
+            particles: est.particles,
+            resamples: filter.stats().resamples,
+            robots,
+            landmarks: est
+                .landmarks
+                .iter()
+                .map(|l| LandmarkState {
+                    slot: l.slot,
+                    id: l.id,
+                    mean: l.gaussian.mean,
+                    cov: l.gaussian.cov,
+                })
+                .collect(),
+            particle_sample,
+            step_ms: step_ns
+                .get(step_ns.len() / 2)
+                .map_or(0.0, |n| *n as f64 / 1e6),
+        }
+    }
+}
+
+fn reject(seq: u64, error: String) -> RecordAck {
+    RecordAck {
+        seq,
+        status: "rejected",
+        arrival: None,
+        error: Some(error),
+    }
+}

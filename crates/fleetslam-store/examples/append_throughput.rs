@@ -1,0 +1,147 @@
+//! Measures acknowledged appends: 5 concurrent writers (robots) post ONE record at a time and
+//! each waits for its acknowledgement (a committed record) before sending the next, as robots
+//! talking to the server do. Prints records per second and the ack latency p50 / p99.
+//!
+//! ```sh
+//! cargo run --release -p fleetslam-store --example append_throughput -- [POSTGRES_URL] [RECORDS_PER_WRITER]
+//! ```
+//!
+//! SQLite is measured in a temporary directory always; PostgreSQL when a URL is given, in a
+//! scratch database created next to the URL's and dropped afterwards.
+
+use std::error::Error;
+use std::time::{Duration, Instant};
+
+use fleetslam_store::{NewObservation, NewRun, Store};
+use sqlx::Connection;
+
+const WRITERS: usize = 5;
+
+type Result<T> = std::result::Result<T, Box<dyn Error + Send + Sync>>;
+
+#[tokio::main]
+async fn main() -> Result<()> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let pg_url = args.iter().find(|a| a.contains("://")).cloned();
+    let per_writer: i64 = match args.iter().find(|a| !a.contains("://")) {
+        Some(n) => n.parse()?,
+        None => 2000,
+    };
+
+    let dir = tempfile::tempdir()?;
+    let store = Store::open_default(dir.path()).await?;
+    measure(&store, per_writer).await?;
+    store.close().await;
+
+    match pg_url {
+        Some(url) => {
+            let name = format!("fleetslam_bench_{}", std::process::id());
+            let mut admin = sqlx::PgConnection::connect(&url).await?;
+            sqlx::query(&format!("CREATE DATABASE \"{name}\""))
+                .execute(&mut admin)
+                .await?;
+            let result = async {
+                let store = Store::open(&with_database(&url, &name)).await?;
+                let r = measure(&store, per_writer).await;
+                store.close().await;
+                r
+            }
+            .await;
+            sqlx::query(&format!("DROP DATABASE IF EXISTS \"{name}\" WITH (FORCE)"))
+                .execute(&mut admin)
+                .await?;
+            result?;
+        }
+        None => println!("postgres: skipped (pass a postgres:// URL to measure it)"),
+    }
+    Ok(())
+}
+
+/// Runs the writers against `store` and prints the figures.
+async fn measure(store: &Store, per_writer: i64) -> Result<()> {
+    let run_id = format!("throughput-{}", std::process::id());
+    store
+        .create_run(&NewRun {
+            id: run_id.clone(),
+            name: Some("append throughput".into()),
+            config: serde_json::json!({}),
+            header: None,
+        })
+        .await?;
+    let body = r#"{"robot":"r","seq":0,"t":0.0,"motion":{"velocity":[[0.12,0.0,0.2]]},"landmarks":[{"id":7,"z":[2.13,0.31]},{"z":[3.9,-0.2]}]}"#;
+    let before = store.writer_stats();
+    let start = Instant::now();
+    let mut tasks = Vec::new();
+    for w in 0..WRITERS {
+        let store = store.clone();
+        let run_id = run_id.clone();
+        tasks.push(tokio::spawn(async move {
+            let robot = format!("robot-{w}");
+            let mut latencies = Vec::with_capacity(per_writer as usize);
+            for seq in 0..per_writer {
+                let rec = NewObservation {
+                    robot_id: robot.clone(),
+                    seq,
+                    t: seq as f64 * 0.05,
+                    body: body.to_owned(),
+                };
+                let sent = Instant::now();
+                store.append(&run_id, vec![rec]).await?;
+                latencies.push(sent.elapsed());
+            }
+            Ok::<_, fleetslam_store::StoreError>(latencies)
+        }));
+    }
+    let mut latencies = Vec::new();
+    for task in tasks {
+        latencies.extend(task.await??);
+    }
+    let wall = start.elapsed();
+    let stats = store.writer_stats();
+    latencies.sort_unstable();
+    let total = latencies.len();
+    let commits = stats.commits - before.commits;
+    println!(
+        "{:8}: {} writers x {} single-record appends: {:.0} acked records/s, ack p50 {:.2} ms, p99 {:.2} ms, \
+         {} commits ({:.1} records/commit)",
+        store.backend(),
+        WRITERS,
+        per_writer,
+        total as f64 / wall.as_secs_f64(),
+        ms(percentile(&latencies, 0.50)),
+        ms(percentile(&latencies, 0.99)),
+        commits,
+        total as f64 / commits.max(1) as f64,
+    );
+    store.delete_run(&run_id).await?;
+    Ok(())
+}
+
+fn percentile(sorted: &[Duration], q: f64) -> Duration {
+    if sorted.is_empty() {
+        return Duration::ZERO;
+    }
+    let i = ((sorted.len() - 1) as f64 * q).round() as usize;
+    sorted[i.min(sorted.len() - 1)]
+}
+
+fn ms(d: Duration) -> f64 {
+    d.as_secs_f64() * 1000.0
+}
+
+/// The URL of database `name` on the server of `url`.
+fn with_database(url: &str, name: &str) -> String {
+    let (base, query) = match url.split_once('?') {
+        Some((base, query)) => (base, Some(query)),
+        None => (url, None),
+    };
+    let host_start = base.find("://").map_or(0, |i| i + 3);
+    let base = match base[host_start..].find('/') {
+        Some(slash) => &base[..host_start + slash],
+        None => base,
+    };
+    match query {
+        Some(q) => format!("{base}/{name}?{q}"),
+        None => format!("{base}/{name}"),
+    }
+}

@@ -4,7 +4,7 @@
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
-use fleetslam_core::config::{Association, FastSlamVersion, FilterConfig};
+use fleetslam_core::config::{Association, FastSlamVersion, FilterConfig, overlay};
 use fleetslam_core::filter::FastSlam;
 use fleetslam_core::log::Log;
 use fleetslam_core::sensor::LandmarkKind;
@@ -261,29 +261,19 @@ fn read_config_value(path: &Path) -> Result<serde_json::Value> {
     Ok(v)
 }
 
-/// Overlays the fields of `patch` onto `base` (objects merge recursively).
-fn merge(base: &mut serde_json::Value, patch: serde_json::Value) {
-    match (base, patch) {
-        (serde_json::Value::Object(b), serde_json::Value::Object(p)) => {
-            for (k, v) in p {
-                merge(b.entry(k).or_insert(serde_json::Value::Null), v);
-            }
-        }
-        (b, p) => *b = p,
-    }
-}
-
+/// `base` with the fields of a JSON or TOML file over it, when one is given.
 fn layered<T: serde::Serialize + serde::de::DeserializeOwned>(
     base: &T,
     file: Option<&Path>,
 ) -> Result<T> {
-    let Some(path) = file else {
-        return Ok(serde_json::from_value(serde_json::to_value(base)?)?);
+    let patch = match file {
+        Some(path) => read_config_value(path)?,
+        None => serde_json::Value::Null,
     };
-    let mut v = serde_json::to_value(base)?;
-    merge(&mut v, read_config_value(path)?);
-    serde_json::from_value(v)
-        .with_context(|| format!("invalid configuration in {}", path.display()))
+    overlay(base, patch).with_context(|| match file {
+        Some(p) => format!("invalid configuration in {}", p.display()),
+        None => "invalid configuration".into(),
+    })
 }
 
 fn cmd_simulate(a: SimulateArgs) -> Result<()> {

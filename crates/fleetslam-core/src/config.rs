@@ -122,6 +122,37 @@ impl Default for FilterConfig {
 #[error("{0}")]
 pub struct ConfigError(pub String);
 
+/// Overlays the fields of `patch` onto `base` (objects merge recursively, other values
+/// replace) and parses the result; the error names the offending field. Used for layered
+/// configuration: defaults or a log header, then a file, then an API request's fields.
+pub fn overlay<T: Serialize + serde::de::DeserializeOwned>(
+    base: &T,
+    patch: serde_json::Value,
+) -> Result<T, ConfigError> {
+    fn merge(base: &mut serde_json::Value, patch: serde_json::Value) {
+        match (base, patch) {
+            (serde_json::Value::Object(b), serde_json::Value::Object(p)) => {
+                for (k, v) in p {
+                    merge(b.entry(k).or_insert(serde_json::Value::Null), v);
+                }
+            }
+            (b, p) => *b = p,
+        }
+    }
+    let mut v = serde_json::to_value(base).map_err(|e| ConfigError(e.to_string()))?;
+    if !patch.is_null() {
+        merge(&mut v, patch);
+    }
+    serde_path_to_error::deserialize(v).map_err(|e| {
+        let path = e.path().to_string();
+        if path == "." {
+            ConfigError(e.inner().to_string())
+        } else {
+            ConfigError(format!("field `{path}`: {}", e.inner()))
+        }
+    })
+}
+
 impl FilterConfig {
     /// The configuration a log's header suggests (its models and noise).
     pub fn from_header(h: &LogHeader) -> Self {
@@ -229,6 +260,25 @@ mod tests {
         let mut bad = FilterConfig::default();
         bad.sensor_noise.range = -1.0;
         assert!(bad.validate().unwrap_err().0.contains("sensor_noise.range"));
+    }
+
+    #[test]
+    fn overlay_merges_nested_fields_and_names_bad_ones() {
+        let base = FilterConfig::default();
+        let c = overlay(
+            &base,
+            serde_json::json!({"particles": 7, "sensor_noise": {"range": 0.5}}),
+        )
+        .unwrap();
+        assert_eq!((c.particles, c.sensor_noise.range), (7, 0.5));
+        assert_eq!(c.sensor_noise.bearing, base.sensor_noise.bearing);
+        let e = overlay(
+            &base,
+            serde_json::json!({"association_params": {"gate": "wide"}}),
+        )
+        .unwrap_err();
+        assert!(e.0.contains("association_params.gate"), "{e}");
+        assert_eq!(overlay(&base, serde_json::Value::Null).unwrap(), base);
     }
 
     #[test]

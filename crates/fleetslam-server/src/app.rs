@@ -10,7 +10,7 @@ use axum::http::{HeaderMap, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
-use fleetslam_core::config::FilterConfig;
+use fleetslam_core::config::{FilterConfig, overlay};
 use fleetslam_core::filter::FastSlam;
 use fleetslam_core::log::{LogHeader, Record};
 use fleetslam_core::pose::PoseGaussian;
@@ -72,8 +72,13 @@ impl AppState {
             return Ok(r.clone());
         }
         match self.store.get_run(id).await? {
-            Some(_) => Err(ApiError::Conflict(format!(
-                "run {id} is not active: it has ended"
+            Some(row) if row.status == "active" => Err(ApiError::Conflict(format!(
+                "run {id} is active in the store but not running in this server (it was started \
+                 before a restart, and recovery is not implemented yet); create a new run"
+            ))),
+            Some(row) => Err(ApiError::Conflict(format!(
+                "run {id} is {}: it takes no more data",
+                row.status
             ))),
             None => Err(ApiError::NotFound(format!(
                 "no run {id}: list runs with GET /v1/runs"
@@ -153,17 +158,6 @@ pub struct RunCreated {
     pub config: FilterConfig,
 }
 
-fn merge_json(base: &mut serde_json::Value, patch: serde_json::Value) {
-    match (base, patch) {
-        (serde_json::Value::Object(b), serde_json::Value::Object(p)) => {
-            for (k, v) in p {
-                merge_json(b.entry(k).or_insert(serde_json::Value::Null), v);
-            }
-        }
-        (b, p) => *b = p,
-    }
-}
-
 async fn create_run(
     State(state): State<AppState>,
     headers: HeaderMap,
@@ -176,13 +170,8 @@ async fn create_run(
         .as_ref()
         .map(FilterConfig::from_header)
         .unwrap_or_default();
-    let mut v = serde_json::to_value(&base).map_err(ApiError::internal)?;
-    if let Some(patch) = req.config {
-        merge_json(&mut v, patch);
-    }
-    let config: FilterConfig = serde_path_to_error::deserialize(v).map_err(|e| {
-        ApiError::BadRequest(format!("config: field `{}`: {}", e.path(), e.inner()))
-    })?;
+    let config = overlay(&base, req.config.unwrap_or(serde_json::Value::Null))
+        .map_err(|e| ApiError::BadRequest(format!("config: {e}")))?;
     config
         .validate()
         .map_err(|e| ApiError::BadRequest(format!("config: {e}")))?;

@@ -176,6 +176,17 @@ async fn k_concurrent_robot_clients_equal_the_offline_run() {
         .json("POST", &format!("/v1/runs/{run}/end"), None, json!({}))
         .await;
     assert_eq!(s, StatusCode::NO_CONTENT);
+    // An ended run takes no more data, and says so.
+    let (s, v) = h
+        .json(
+            "POST",
+            &format!("/v1/runs/{run}/robots"),
+            None,
+            json!({"id": "late"}),
+        )
+        .await;
+    assert_eq!(s, StatusCode::CONFLICT, "{v}");
+    assert!(v["message"].as_str().unwrap().contains("ended"), "{v}");
     let (_, v) = h.get(&format!("/v1/runs/{run}")).await;
     let summary = &v["run"]["summary"];
     assert_eq!(

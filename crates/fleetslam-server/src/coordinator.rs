@@ -427,6 +427,9 @@ impl Coordinator {
         let mut plans: Vec<Vec<Result<RecordAck, usize>>> = Vec::with_capacity(ingests.len());
         let mut batch: Vec<(Record, String)> = Vec::new();
         let mut in_batch: BTreeSet<(String, u64)> = BTreeSet::new();
+        // Times of the records accepted so far in this batch, per robot, by seq: a robot's
+        // time must not go back as its seq goes up, within the batch as against the merge.
+        let mut batch_times: HashMap<String, BTreeMap<u64, f64>> = HashMap::new();
         for (records, _) in &ingests {
             let mut plan = Vec::with_capacity(records.len());
             for r in records {
@@ -459,8 +462,25 @@ impl Coordinator {
                     plan.push(Ok(reject(r.seq, msg)));
                     continue;
                 }
+                let times = batch_times.entry(r.robot.clone()).or_default();
+                let before = times.range(..r.seq).next_back().map(|(s, t)| (*s, *t));
+                let after = times.range(r.seq + 1..).next().map(|(s, t)| (*s, *t));
+                if let Some((s, t)) = before
+                    .filter(|(_, t)| r.t < *t)
+                    .or(after.filter(|(_, t)| r.t > *t))
+                {
+                    plan.push(Ok(reject(
+                        r.seq,
+                        format!(
+                            "record {} of robot {:?} at t={} is out of time order with its record {s} at t={t}",
+                            r.seq, r.robot, r.t
+                        ),
+                    )));
+                    continue;
+                }
                 match serde_json::to_string(r) {
                     Ok(body) => {
+                        times.insert(r.seq, r.t);
                         in_batch.insert((r.robot.clone(), r.seq));
                         plan.push(Err(batch.len()));
                         batch.push((r.clone(), body));

@@ -514,6 +514,37 @@ async fn bad_input_table() {
             "{name}: message {v} lacks {needle:?}"
         );
     }
+    // Time going back within one batch: the later seq is refused (409), the first stored.
+    let mut a = log
+        .records
+        .iter()
+        .filter(|r| r.robot == "1")
+        .nth(5)
+        .unwrap()
+        .clone();
+    let mut b = a.clone();
+    a.t += 10.0;
+    b.seq += 1;
+    b.t += 5.0;
+    let (s, v) = h
+        .call(
+            "POST",
+            &obs,
+            Some(&token),
+            "application/json",
+            serde_json::to_vec(&[a, b]).unwrap(),
+        )
+        .await;
+    assert_eq!(s, StatusCode::CONFLICT, "{v}");
+    assert_eq!(v["acks"][0]["status"], "stored", "{v}");
+    assert_eq!(v["acks"][1]["status"], "rejected", "{v}");
+    assert!(
+        v["acks"][1]["error"]
+            .as_str()
+            .unwrap()
+            .contains("out of time order"),
+        "{v}"
+    );
     // A sequence regression: record 1 then record 0 later than what was applied.
     let r1 = log
         .records
@@ -532,8 +563,11 @@ async fn bad_input_table() {
         )
         .await;
     assert_eq!(s, StatusCode::OK, "{v}");
-    let state = h.state_when(&run, |s| s["robots"][0]["records"] == 1).await;
-    assert_eq!(state["robots"][0]["gaps"], 1, "{state}");
+    let state = h.state_when(&run, |s| s["robots"][0]["records"] == 2).await;
+    assert_eq!(
+        state["robots"][0]["gaps"], 4,
+        "seqs 0, 2, 3 and 4 are missing: {state}"
+    );
 }
 
 #[tokio::test]

@@ -28,7 +28,7 @@
 use crate::config::{Association, ConfigError, FastSlamVersion, FilterConfig};
 use crate::log::Record;
 use crate::map::{Landmark, LandmarkMap};
-use crate::motion::Motion;
+use crate::motion::{Motion, covariance_in_world};
 use crate::pose::{Pose2, PoseGaussian, weighted_mean_pose, wrap_angle};
 use crate::resample::{normalize_log_weights, systematic};
 use crate::rng::{LANE_ADD_ROBOT, LANE_RESAMPLE, stream};
@@ -219,7 +219,9 @@ struct StepCtx<'a> {
     updater: &'a dyn LandmarkUpdater,
     robot: usize,
     inc: Pose2,
-    /// Standard deviations of the (longitudinal, lateral, heading) increment noise.
+    /// Variances of the (longitudinal, lateral, heading) increment noise.
+    var: [f64; 3],
+    /// Their square roots.
     std: [f64; 3],
     obs: &'a [Obs],
     sightings: &'a [(usize, [f64; 2])],
@@ -485,6 +487,7 @@ impl FastSlam {
             updater: self.updater.as_ref(),
             robot: r,
             inc,
+            var,
             std: var.map(f64::sqrt),
             obs: &obs,
             sightings: &sightings,
@@ -793,10 +796,6 @@ fn q_matrix(cfg: &FilterConfig) -> Matrix3<f64> {
     }
 }
 
-fn landmark_cov3(g: &LandmarkGaussian) -> Matrix3<f64> {
-    g.cov3()
-}
-
 /// Unknown association: the most likely landmark within the gate, `New` beyond
 /// `new_landmark` from every landmark, `Ignore` in between. `p` is the pose covariance
 /// (zero in FastSLAM 1.0).
@@ -836,7 +835,7 @@ fn associate(
         let Some((zhat, hm, hx)) = predict(kind, pose, &g.mean) else {
             continue;
         };
-        let s = hm * landmark_cov3(g) * hm.transpose() + q + hx * p * hx.transpose();
+        let s = hm * g.cov3() * hm.transpose() + q + hx * p * hx.transpose();
         let Some((s_inv, logdet)) = inv_logdet(kind, &s) else {
             continue;
         };
@@ -905,17 +904,7 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
         }
         let mean0 = prev.compose(&ctx.inc);
         let mut mu = Vector3::new(mean0.x, mean0.y, mean0.theta);
-        // Motion covariance in the world frame: R = J diag(σ²) Jᵀ (see motion.rs).
-        let mut pc = {
-            let (s, c) = prev.theta.sin_cos();
-            let j = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
-            let d = Matrix3::from_diagonal(&Vector3::new(
-                ctx.std[0] * ctx.std[0],
-                ctx.std[1] * ctx.std[1],
-                ctx.std[2] * ctx.std[2],
-            ));
-            j * d * j.transpose()
-        };
+        let mut pc = covariance_in_world(&prev, &ctx.var);
         for (j, o) in ctx.obs.iter().enumerate() {
             let pose = Pose2::new(mu[0], mu[1], mu[2]);
             let action = match o.slot {
@@ -943,7 +932,7 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
                 p.log_w += outlier_ll(f64::NAN, f64::NAN, outlier.unwrap_or(25.0));
                 continue;
             };
-            let qj = hm * landmark_cov3(&lm.gaussian) * hm.transpose() + q;
+            let qj = hm * lm.gaussian.cov3() * hm.transpose() + q;
             let pht = pc * hx.transpose();
             let s = hx * pht + qj;
             let Some((s_inv, logdet)) = inv_logdet(kind, &s) else {

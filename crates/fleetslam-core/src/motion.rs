@@ -242,11 +242,17 @@ impl MotionNoise {
 
     /// World-frame covariance of the new pose `prev ⊕ (inc + e)`.
     pub fn world_covariance(&self, prev: &Pose2, inc: &Pose2, dt: f64) -> Matrix3<f64> {
-        let v = self.variances(inc, dt);
-        let (s, c) = prev.theta.sin_cos();
-        let j = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
-        j * Matrix3::from_diagonal(&Vector3::new(v[0], v[1], v[2])) * j.transpose()
+        covariance_in_world(prev, &self.variances(inc, dt))
     }
+}
+
+/// `J diag(var) Jᵀ`: the world-frame covariance of `prev ⊕ (inc + e)` for increment noise
+/// `e` with the given (longitudinal, lateral, heading) variances.
+#[inline]
+pub fn covariance_in_world(prev: &Pose2, var: &[f64; 3]) -> Matrix3<f64> {
+    let (s, c) = prev.theta.sin_cos();
+    let j = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
+    j * Matrix3::from_diagonal(&Vector3::new(var[0], var[1], var[2])) * j.transpose()
 }
 
 #[cfg(test)]

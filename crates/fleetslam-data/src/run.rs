@@ -55,6 +55,18 @@ pub struct RunOutput {
     pub final_estimate: Estimate,
 }
 
+/// Start time of a robot whose header gives none: before any record. Trajectories get no
+/// start point for it.
+const UNKNOWN_T0: f64 = -1e12;
+
+/// The pose a trajectory records for robot `r`.
+fn pose_of(slam: &FastSlam, which: TrajectoryEstimate, r: usize) -> fleetslam_core::Pose2 {
+    match which {
+        TrajectoryEstimate::Mean => slam.mean_pose(r),
+        TrajectoryEstimate::Best => slam.particles()[slam.best_index()].poses[r],
+    }
+}
+
 /// Adds the header's robots with known start poses to the filter; returns whether every
 /// robot had one, in the ground truth's frame.
 pub fn add_header_robots(slam: &mut FastSlam, log: &Log) -> Result<bool, FilterError> {
@@ -62,7 +74,8 @@ pub fn add_header_robots(slam: &mut FastSlam, log: &Log) -> Result<bool, FilterE
     for r in &log.header.robots {
         match &r.start {
             Some(start) => {
-                slam.add_robot(&r.id, start, r.t0.unwrap_or(f64::NEG_INFINITY).max(-1e12))?;
+                let t0 = r.t0.map_or(UNKNOWN_T0, |t| t.max(UNKNOWN_T0));
+                slam.add_robot(&r.id, start, t0)?;
             }
             None => all_known = false,
         }
@@ -87,12 +100,9 @@ pub fn run_log(
         .map(|r| (r.id.clone(), Vec::new()))
         .collect();
     for r in slam.robots() {
-        if r.last_t.is_finite() && r.last_t > -1e12 {
+        if r.last_t > UNKNOWN_T0 {
             let i = slam.robot_index(&r.id).expect("robot just added");
-            let pose = match which {
-                TrajectoryEstimate::Mean => slam.mean_pose(i),
-                TrajectoryEstimate::Best => slam.particles()[slam.best_index()].poses[i],
-            };
+            let pose = pose_of(slam, which, i);
             trajectories
                 .get_mut(&r.id)
                 .expect("inserted above")
@@ -112,10 +122,7 @@ pub fn run_log(
         let t0 = Instant::now();
         slam.step(rec)?;
         step_ns.push(t0.elapsed().as_nanos() as u64);
-        let pose = match which {
-            TrajectoryEstimate::Mean => slam.mean_pose(r),
-            TrajectoryEstimate::Best => slam.particles()[slam.best_index()].poses[r],
-        };
+        let pose = pose_of(slam, which, r);
         trajectories
             .get_mut(&rec.robot)
             .expect("every robot in the filter has a trajectory")

@@ -191,6 +191,20 @@ fn updater_of_another_kind_is_refused() {
     assert!(err.to_string().contains("point3d"), "{err}");
 }
 
+#[test]
+fn updater_other_than_the_configured_one_is_refused() {
+    let cfg = FilterConfig {
+        updater: "mlp-123".into(),
+        ..FilterConfig::default()
+    };
+    let err = FastSlam::new(cfg.clone()).unwrap_err();
+    assert!(err.to_string().contains("mlp-123"), "{err}");
+    let ekf =
+        fleetslam_core::ekf::EkfUpdater::new(LandmarkKind::RangeBearing2d, &Default::default());
+    let err = FastSlam::with_updater(cfg, std::sync::Arc::new(ekf)).unwrap_err();
+    assert!(err.to_string().contains("\"ekf\""), "{err}");
+}
+
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(24))]
     /// Extreme and conflicting observations never produce NaN, and the invariants hold:

@@ -66,6 +66,9 @@ impl Default for AssociationParams {
     }
 }
 
+/// The name of the built-in EKF updater in [`FilterConfig::updater`].
+pub const EKF_UPDATER: &str = "ekf";
+
 /// The configuration of one filter (one run).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -94,6 +97,13 @@ pub struct FilterConfig {
     /// Particles per work item and per updater batch. Default 64: large enough to amortise a
     /// batched updater, small enough to spread over threads.
     pub batch_size: usize,
+    /// The landmark updater: `ekf` (default) or the id of a learned model. [`FastSlam::new`]
+    /// builds the EKF; a learned updater is built by its crate and passed to
+    /// [`FastSlam::with_updater`], which checks that its name matches.
+    ///
+    /// [`FastSlam::new`]: crate::FastSlam::new
+    /// [`FastSlam::with_updater`]: crate::FastSlam::with_updater
+    pub updater: String,
 }
 
 impl Default for FilterConfig {
@@ -113,6 +123,7 @@ impl Default for FilterConfig {
             resample_threshold: 0.5,
             seed: 0,
             batch_size: 64,
+            updater: EKF_UPDATER.to_string(),
         }
     }
 }
@@ -183,6 +194,12 @@ impl FilterConfig {
             return err(format!(
                 "particles must be between 1 and 1000000, got {}",
                 self.particles
+            ));
+        }
+        if self.updater.is_empty() || self.updater.len() > 200 {
+            return err(format!(
+                "updater must be `ekf` or a model id (1 to 200 characters), got {:?}",
+                self.updater
             ));
         }
         if self.batch_size == 0 {

@@ -67,6 +67,8 @@ pub enum FilterError {
         got: &'static str,
         want: &'static str,
     },
+    #[error("the run's configuration names updater {want:?} but was given {got:?}")]
+    UpdaterName { want: String, got: String },
     #[error("snapshot does not fit: {0}")]
     Snapshot(String),
 }
@@ -233,7 +235,15 @@ struct StepCtx<'a> {
 
 impl FastSlam {
     /// A filter with the EKF updater of the configured landmark kind and sensor noise.
+    /// Refuses a configuration that names another updater: build that one and pass it to
+    /// [`FastSlam::with_updater`].
     pub fn new(config: FilterConfig) -> Result<Self, FilterError> {
+        if config.updater != crate::config::EKF_UPDATER {
+            return Err(FilterError::UpdaterName {
+                want: config.updater.clone(),
+                got: crate::config::EKF_UPDATER.to_string(),
+            });
+        }
         let ekf = crate::ekf::EkfUpdater::new(config.landmark_kind, &config.sensor_noise);
         Self::with_updater(config, Arc::new(ekf))
     }
@@ -703,6 +713,12 @@ fn check_updater(cfg: &FilterConfig, u: &dyn LandmarkUpdater) -> Result<(), Filt
             updater: u.name().to_string(),
             got: u.kind().as_str(),
             want: cfg.landmark_kind.as_str(),
+        });
+    }
+    if u.name() != cfg.updater {
+        return Err(FilterError::UpdaterName {
+            want: cfg.updater.clone(),
+            got: u.name().to_string(),
         });
     }
     Ok(())

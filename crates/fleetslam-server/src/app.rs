@@ -1,8 +1,10 @@
 //! The HTTP API (versioned under `/v1`), built as `app(state) -> Router` so tests can call it
 //! with `tower::ServiceExt::oneshot`.
 
+use crate::api_history;
 use crate::coordinator::{self, CoordinatorConfig, RecordAck, RunHandle, RunState};
 use crate::error::ApiError;
+use crate::history;
 use axum::body::Bytes;
 use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
 use axum::extract::{DefaultBodyLimit, Path, Query, State};
@@ -29,6 +31,13 @@ pub struct ApiConfig {
     /// Largest request body [bytes].
     pub body_limit: usize,
     pub coordinator: CoordinatorConfig,
+    /// The dashboard's files, served at `/`.
+    pub web_dir: std::path::PathBuf,
+}
+
+/// The `web/` directory of the source tree this server was built from.
+pub fn default_web_dir() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../web")
 }
 
 impl Default for ApiConfig {
@@ -37,17 +46,18 @@ impl Default for ApiConfig {
             admin_token: None,
             body_limit: 16 << 20,
             coordinator: CoordinatorConfig::default(),
+            web_dir: default_web_dir(),
         }
     }
 }
 
 /// A live run: its coordinator and who may post as which robot.
 #[derive(Debug)]
-struct LiveRun {
-    handle: RunHandle,
-    config: FilterConfig,
+pub(crate) struct LiveRun {
+    pub(crate) handle: RunHandle,
+    pub(crate) config: FilterConfig,
     /// sha256(token) hex -> robot id.
-    tokens: RwLock<HashMap<String, String>>,
+    pub(crate) tokens: RwLock<HashMap<String, String>>,
 }
 
 /// Shared state of the handlers.
@@ -55,7 +65,8 @@ struct LiveRun {
 pub struct AppState {
     pub store: Store,
     pub config: Arc<ApiConfig>,
-    runs: Arc<RwLock<HashMap<String, Arc<LiveRun>>>>,
+    pub(crate) runs: Arc<RwLock<HashMap<String, Arc<LiveRun>>>>,
+    pub(crate) metrics: Arc<crate::metrics::Metrics>,
 }
 
 impl AppState {
@@ -64,17 +75,43 @@ impl AppState {
             store,
             config: Arc::new(config),
             runs: Arc::default(),
+            metrics: Arc::default(),
         }
     }
 
-    async fn live(&self, id: &str) -> Result<Arc<LiveRun>, ApiError> {
+    /// Starts the coordinator of a run and makes it reachable.
+    pub(crate) async fn insert_live(
+        &self,
+        id: String,
+        config: FilterConfig,
+        filter: FastSlam,
+        recovered: Option<coordinator::Recovered>,
+        tokens: HashMap<String, String>,
+    ) -> Arc<LiveRun> {
+        let handle = coordinator::spawn(
+            id.clone(),
+            filter,
+            self.store.clone(),
+            self.config.coordinator.clone(),
+            recovered,
+        );
+        let live = Arc::new(LiveRun {
+            handle,
+            config,
+            tokens: RwLock::new(tokens),
+        });
+        self.runs.write().await.insert(id, live.clone());
+        live
+    }
+
+    pub(crate) async fn live(&self, id: &str) -> Result<Arc<LiveRun>, ApiError> {
         if let Some(r) = self.runs.read().await.get(id) {
             return Ok(r.clone());
         }
         match self.store.get_run(id).await? {
             Some(row) if row.status == "active" => Err(ApiError::Conflict(format!(
-                "run {id} is active in the store but not running in this server (it was started \
-                 before a restart, and recovery is not implemented yet); create a new run"
+                "run {id} is active in the store but not running in this server (its recovery \
+                 failed at start; see the server log)"
             ))),
             Some(row) => Err(ApiError::Conflict(format!(
                 "run {id} is {}: it takes no more data",
@@ -90,19 +127,49 @@ impl AppState {
 pub fn app(state: AppState) -> Router {
     let limit = state.config.body_limit;
     Router::new()
-        .route("/healthz", get(|| async { "ok" }))
+        .route("/healthz", get(healthz))
+        .route("/metrics", get(crate::metrics::metrics))
+        .route("/v1/openapi.json", get(crate::openapi::openapi))
         .route("/v1/runs", post(create_run).get(list_runs))
-        .route("/v1/runs/{run}", get(get_run))
+        .route(
+            "/v1/runs/{run}",
+            get(get_run).delete(api_history::delete_run),
+        )
         .route("/v1/runs/{run}/end", post(end_run))
         .route("/v1/runs/{run}/robots", post(register_robot))
         .route("/v1/runs/{run}/observations", post(post_observations))
-        .route("/v1/runs/{run}/state", get(get_state))
+        .route("/v1/runs/{run}/state", get(api_history::get_state))
         .route("/v1/runs/{run}/live", get(live))
+        .route("/v1/runs/{run}/timeline", get(api_history::timeline))
+        .route(
+            "/v1/runs/{run}/trajectories",
+            get(api_history::trajectories),
+        )
+        .route(
+            "/v1/runs/{run}/truth",
+            get(api_history::get_truth).put(api_history::put_truth),
+        )
+        .route("/v1/runs/{run}/evaluation", get(api_history::evaluation))
+        .route("/v1/runs/{run}/export", get(api_history::export))
+        .route("/v1/runs/{run}/rerun", post(api_history::rerun))
+        .fallback_service(tower_http::services::ServeDir::new(&state.config.web_dir))
         .layer(DefaultBodyLimit::max(limit))
+        .layer(axum::middleware::from_fn_with_state(
+            state.clone(),
+            crate::metrics::track,
+        ))
+        .layer(tower_http::trace::TraceLayer::new_for_http())
         .with_state(state)
 }
 
-fn token_hash(token: &str) -> String {
+/// `GET /healthz`
+#[utoipa::path(get, path = "/healthz", tag = "server",
+    responses((status = 200, description = "The server is up", body = String)))]
+pub(crate) async fn healthz() -> &'static str {
+    "ok"
+}
+
+pub(crate) fn token_hash(token: &str) -> String {
     hex::encode(Sha256::digest(token.as_bytes()))
 }
 
@@ -115,7 +182,7 @@ fn bearer(headers: &HeaderMap) -> Option<&str> {
         .map(str::trim)
 }
 
-fn check_admin(state: &AppState, headers: &HeaderMap) -> Result<(), ApiError> {
+pub(crate) fn check_admin(state: &AppState, headers: &HeaderMap) -> Result<(), ApiError> {
     match &state.config.admin_token {
         None => Ok(()),
         Some(t) if bearer(headers) == Some(t.as_str()) => Ok(()),
@@ -126,7 +193,10 @@ fn check_admin(state: &AppState, headers: &HeaderMap) -> Result<(), ApiError> {
 }
 
 /// Parses JSON into `T`, turning serde's message into a 400 that names the field.
-fn parse_json<T: serde::de::DeserializeOwned>(what: &str, body: &[u8]) -> Result<T, ApiError> {
+pub(crate) fn parse_json<T: serde::de::DeserializeOwned>(
+    what: &str,
+    body: &[u8],
+) -> Result<T, ApiError> {
     let de = &mut serde_json::Deserializer::from_slice(body);
     serde_path_to_error::deserialize(de).map_err(|e| {
         let path = e.path().to_string();
@@ -158,7 +228,12 @@ pub struct RunCreated {
     pub config: FilterConfig,
 }
 
-async fn create_run(
+/// `POST /v1/runs` (admin): a new run from a log header and configuration fields.
+#[utoipa::path(post, path = "/v1/runs", tag = "runs", request_body = CreateRun,
+    responses((status = 201, description = "Created", body = RunCreated),
+              (status = 400, description = "A bad configuration: the message names the field", body = crate::error::ErrorBody),
+              (status = 401, description = "Missing or wrong admin token", body = crate::error::ErrorBody)))]
+pub(crate) async fn create_run(
     State(state): State<AppState>,
     headers: HeaderMap,
     body: Bytes,
@@ -175,7 +250,7 @@ async fn create_run(
     config
         .validate()
         .map_err(|e| ApiError::BadRequest(format!("config: {e}")))?;
-    let filter = FastSlam::new(config.clone()).map_err(|e| ApiError::BadRequest(e.to_string()))?;
+    let filter = history::new_filter(&config)?;
     let id = uuid::Uuid::new_v4().to_string();
     state
         .store
@@ -191,25 +266,16 @@ async fn create_run(
                 .map_err(ApiError::internal)?,
         })
         .await?;
-    let handle = coordinator::spawn(
-        id.clone(),
-        filter,
-        state.store.clone(),
-        state.config.coordinator.clone(),
-    );
-    let live = LiveRun {
-        handle,
-        config: config.clone(),
-        tokens: RwLock::default(),
-    };
-    state.runs.write().await.insert(id.clone(), Arc::new(live));
+    state
+        .insert_live(id.clone(), config.clone(), filter, None, HashMap::new())
+        .await;
     tracing::info!(run = %id, "run created");
     Ok((StatusCode::CREATED, Json(RunCreated { id, config })))
 }
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
-struct ListQuery {
+pub(crate) struct ListQuery {
     status: Option<String>,
     created_after: Option<i64>,
     created_before: Option<i64>,
@@ -217,7 +283,15 @@ struct ListQuery {
     offset: Option<i64>,
 }
 
-async fn list_runs(
+/// `GET /v1/runs`: runs, newest first, with their summaries.
+#[utoipa::path(get, path = "/v1/runs", tag = "runs",
+    params(("status" = Option<String>, Query, description = "active, ended or failed"),
+           ("created_after" = Option<i64>, Query, description = "Unix ms"),
+           ("created_before" = Option<i64>, Query, description = "Unix ms"),
+           ("limit" = Option<i64>, Query, description = "Page size, 1 to 1000 (default 50)"),
+           ("offset" = Option<i64>, Query, description = "Runs to skip")),
+    responses((status = 200, description = "{\"runs\": [...], \"total\": n}")))]
+pub(crate) async fn list_runs(
     State(state): State<AppState>,
     Query(q): Query<ListQuery>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
@@ -227,20 +301,44 @@ async fn list_runs(
             "limit must be between 1 and 1000, got {limit}"
         )));
     }
-    let rows = state
-        .store
-        .list_runs(&RunFilter {
-            status: q.status,
-            created_after: q.created_after,
-            created_before: q.created_before,
-            limit,
-            offset: q.offset.unwrap_or(0).max(0),
+    let filter = RunFilter {
+        status: q.status,
+        created_after: q.created_after,
+        created_before: q.created_before,
+        limit,
+        offset: q.offset.unwrap_or(0).max(0),
+    };
+    let rows = state.store.list_runs(&filter).await?;
+    let total = state.store.count_runs(&filter).await?;
+    let live = state.runs.read().await;
+    let runs: Vec<serde_json::Value> = rows
+        .into_iter()
+        .map(|mut row| {
+            // A running run's summary is its live state's.
+            if let Some(l) = live.get(&row.id) {
+                row.summary = Some(api_history::summary(
+                    &l.handle.state.borrow(),
+                    row.records,
+                    None,
+                ));
+            }
+            let mut v = serde_json::to_value(&row).unwrap_or_default();
+            if let Some(summary) = v.get_mut("summary").and_then(|s| s.as_object_mut())
+                && summary.get("updater").is_none_or(|u| u.is_null())
+            {
+                summary.insert("updater".into(), row.config["updater"].clone());
+            }
+            v
         })
-        .await?;
-    Ok(Json(serde_json::json!({ "runs": rows })))
+        .collect();
+    Ok(Json(serde_json::json!({ "runs": runs, "total": total })))
 }
 
-async fn get_run(
+/// `GET /v1/runs/{run}`
+#[utoipa::path(get, path = "/v1/runs/{run}", tag = "runs",
+    params(("run" = String, Path, description = "Run id")),
+    responses((status = 200, description = "{\"run\": {...}}"), (status = 404, body = crate::error::ErrorBody)))]
+pub(crate) async fn get_run(
     State(state): State<AppState>,
     Path(run): Path<String>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
@@ -251,22 +349,45 @@ async fn get_run(
     Ok(Json(serde_json::json!({ "run": row })))
 }
 
-async fn end_run(
+/// `POST /v1/runs/{run}/end` (admin): applies what the run holds, stores its result, ends it.
+#[utoipa::path(post, path = "/v1/runs/{run}/end", tag = "runs",
+    params(("run" = String, Path, description = "Run id")),
+    responses((status = 204, description = "Ended"), (status = 409, body = crate::error::ErrorBody)))]
+pub(crate) async fn end_run(
     State(state): State<AppState>,
     headers: HeaderMap,
     Path(run): Path<String>,
 ) -> Result<StatusCode, ApiError> {
     check_admin(&state, &headers)?;
     let live = state.live(&run).await?;
+    finish_run(&state, &run, &live).await?;
+    Ok(StatusCode::NO_CONTENT)
+}
+
+/// Ends a live run: the coordinator applies what it holds and stores its result, then the
+/// run is marked ended with its summary.
+pub(crate) async fn finish_run(
+    state: &AppState,
+    run: &str,
+    live: &LiveRun,
+) -> Result<(), ApiError> {
     live.handle.end().await?;
-    let summary =
-        serde_json::to_value(&*live.handle.state.borrow().clone()).map_err(ApiError::internal)?;
+    let final_state = live.handle.state.borrow().clone();
+    let records = state.store.record_count(run).await?;
+    let metrics = state
+        .store
+        .get_artifact(run, history::RESULT)
+        .await?
+        .and_then(|b| serde_json::from_str::<serde_json::Value>(&b).ok())
+        .and_then(|v| serde_json::from_value::<history::RunMetrics>(v["metrics"].clone()).ok());
+    let summary = api_history::summary(&final_state, records, metrics.as_ref());
     state
         .store
-        .set_run_status(&run, "ended", Some(&summary))
+        .set_run_status(run, "ended", Some(&summary))
         .await?;
-    state.runs.write().await.remove(&run);
-    Ok(StatusCode::NO_CONTENT)
+    state.runs.write().await.remove(run);
+    tracing::info!(run = %run, "run ended");
+    Ok(())
 }
 
 /// Body of `POST /v1/runs/{run}/robots`.
@@ -291,7 +412,11 @@ pub struct RobotRegistered {
     pub mode: &'static str,
 }
 
-async fn register_robot(
+/// `POST /v1/runs/{run}/robots`: registers a robot; the answer holds its token.
+#[utoipa::path(post, path = "/v1/runs/{run}/robots", tag = "robots", request_body = RegisterRobot,
+    params(("run" = String, Path, description = "Run id")),
+    responses((status = 201, body = RobotRegistered), (status = 409, body = crate::error::ErrorBody)))]
+pub(crate) async fn register_robot(
     State(state): State<AppState>,
     Path(run): Path<String>,
     body: Bytes,
@@ -380,7 +505,14 @@ fn parse_records(headers: &HeaderMap, body: &[u8]) -> Result<Vec<Record>, ApiErr
     }
 }
 
-async fn post_observations(
+/// `POST /v1/runs/{run}/observations` (robot token): one record, an array, or NDJSON.
+#[utoipa::path(post, path = "/v1/runs/{run}/observations", tag = "robots",
+    params(("run" = String, Path, description = "Run id")),
+    request_body(content = Object, description = "A record, an array of records, or NDJSON (application/x-ndjson) in the log format"),
+    responses((status = 200, description = "Every record stored or a duplicate", body = IngestResponse),
+              (status = 409, description = "Some records were rejected (see each ack)", body = IngestResponse),
+              (status = 503, description = "The run's queue is full; retry after Retry-After", body = crate::error::ErrorBody)))]
+pub(crate) async fn post_observations(
     State(state): State<AppState>,
     Path(run): Path<String>,
     headers: HeaderMap,
@@ -422,16 +554,11 @@ async fn post_observations(
     Ok((status, Json(IngestResponse { acks })).into_response())
 }
 
-async fn get_state(
-    State(state): State<AppState>,
-    Path(run): Path<String>,
-) -> Result<Json<Arc<RunState>>, ApiError> {
-    let live = state.live(&run).await?;
-    let s = live.handle.state.borrow().clone();
-    Ok(Json(s))
-}
-
-async fn live(
+/// `GET /v1/runs/{run}/live` (websocket): states and events.
+#[utoipa::path(get, path = "/v1/runs/{run}/live", tag = "runs",
+    params(("run" = String, Path, description = "Run id")),
+    responses((status = 101, description = "Websocket: {\"type\": \"state\"|\"event\"|\"lagged\", ...}")))]
+pub(crate) async fn live(
     State(state): State<AppState>,
     Path(run): Path<String>,
     ws: WebSocketUpgrade,

@@ -31,6 +31,13 @@ pub struct ServerConfig {
     pub state_rate_hz: f64,
     /// Particles per robot in the published state. Default 100.
     pub particle_sample: usize,
+    /// Records applied between two stored snapshots. Default 2000. Recovery after a crash
+    /// and scrubbing replay at most this many records; each snapshot costs a serialization
+    /// of every particle.
+    pub snapshot_every: u64,
+    /// Directory of the dashboard's files, served at `/`. Default: the `web/` directory of
+    /// the source tree the server was built from.
+    pub web_dir: Option<PathBuf>,
 }
 
 impl Default for ServerConfig {
@@ -45,12 +52,14 @@ impl Default for ServerConfig {
             reorder_window_ms: 2000,
             state_rate_hz: 10.0,
             particle_sample: 100,
+            snapshot_every: 2000,
+            web_dir: None,
         }
     }
 }
 
 /// The environment variables read, each overriding the field of the same name.
-pub const ENV_KEYS: [&str; 9] = [
+pub const ENV_KEYS: [&str; 11] = [
     "bind",
     "data_dir",
     "database_url",
@@ -60,6 +69,8 @@ pub const ENV_KEYS: [&str; 9] = [
     "reorder_window_ms",
     "state_rate_hz",
     "particle_sample",
+    "snapshot_every",
+    "web_dir",
 ];
 
 impl ServerConfig {
@@ -86,8 +97,10 @@ impl ServerConfig {
         for key in ENV_KEYS {
             let name = format!("FLEETSLAM_{}", key.to_uppercase());
             if let Some(raw) = env(&name) {
-                let default_is_string =
-                    matches!(key, "bind" | "data_dir" | "database_url" | "admin_token");
+                let default_is_string = matches!(
+                    key,
+                    "bind" | "data_dir" | "database_url" | "admin_token" | "web_dir"
+                );
                 v[key] = if default_is_string {
                     serde_json::Value::String(raw)
                 } else {
@@ -110,6 +123,9 @@ impl ServerConfig {
                 self.state_rate_hz
             ));
         }
+        if self.snapshot_every == 0 {
+            return Err("snapshot_every must be at least 1".into());
+        }
         if self.body_limit_bytes < 1024 {
             return Err(format!(
                 "body_limit_bytes must be at least 1024, got {}",
@@ -123,11 +139,16 @@ impl ServerConfig {
         ApiConfig {
             admin_token: self.admin_token.clone(),
             body_limit: self.body_limit_bytes,
+            web_dir: self
+                .web_dir
+                .clone()
+                .unwrap_or_else(crate::app::default_web_dir),
             coordinator: CoordinatorConfig {
                 queue_capacity: self.queue_capacity,
                 reorder_window: Duration::from_millis(self.reorder_window_ms),
                 state_rate_hz: self.state_rate_hz,
                 particle_sample: self.particle_sample,
+                snapshot_every: self.snapshot_every,
             },
         }
     }

@@ -10,11 +10,12 @@
 //! never slows the filter or makes memory grow.
 
 use crate::error::ApiError;
-use crate::merge::{MergeError, Merger};
+use crate::history::{self, RunMetrics, RunSnapshot, Trajectories};
+use crate::merge::{MergeError, Merger, OrderKey};
 use fleetslam_core::filter::{FastSlam, StepReport};
 use fleetslam_core::log::Record;
 use fleetslam_core::pose::{Pose2, PoseGaussian};
-use fleetslam_store::{NewObservation, Store};
+use fleetslam_store::{NewObservation, NewSnapshot, Store};
 use serde::Serialize;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::Arc;
@@ -32,6 +33,9 @@ pub struct CoordinatorConfig {
     pub state_rate_hz: f64,
     /// Particles per robot in the published state.
     pub particle_sample: usize,
+    /// Records applied between two stored snapshots (recovery replays at most this many;
+    /// scrubbing through a finished run replays at most this many per position).
+    pub snapshot_every: u64,
 }
 
 impl Default for CoordinatorConfig {
@@ -41,6 +45,7 @@ impl Default for CoordinatorConfig {
             reorder_window: Duration::from_secs(2),
             state_rate_hz: 10.0,
             particle_sample: 100,
+            snapshot_every: 2000,
         }
     }
 }
@@ -86,7 +91,7 @@ pub struct RobotStatus {
 }
 
 /// A landmark of the best particle.
-#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize, utoipa::ToSchema)]
 pub struct LandmarkState {
     pub slot: usize,
     pub id: Option<u32>,
@@ -148,6 +153,9 @@ pub enum Command {
     End {
         reply: oneshot::Sender<Result<(), ApiError>>,
     },
+    Trajectories {
+        reply: oneshot::Sender<Result<Arc<Trajectories>, ApiError>>,
+    },
 }
 
 /// The handle the HTTP layer keeps for a running run.
@@ -204,6 +212,10 @@ impl RunHandle {
         self.call(|reply| Command::End { reply }).await
     }
 
+    pub async fn trajectories(&self) -> Result<Arc<Trajectories>, ApiError> {
+        self.call(|reply| Command::Trajectories { reply }).await
+    }
+
     /// Requests waiting in the queue.
     pub fn queue_depth(&self) -> usize {
         self.tx.max_capacity() - self.tx.capacity()
@@ -241,6 +253,18 @@ impl Acked {
         }
     }
 
+    /// The bookkeeping of a robot whose stored records have these seqs (seq -> t).
+    fn restore(seqs: &BTreeMap<u64, f64>, merged: bool) -> Self {
+        let mut a = Acked {
+            merged,
+            ..Default::default()
+        };
+        for (&seq, &t) in seqs {
+            a.insert(seq, t);
+        }
+        a
+    }
+
     fn gaps(&self) -> u64 {
         match self.max {
             Some(m) => m + 1 - self.contiguous - self.above.len() as u64,
@@ -249,11 +273,32 @@ impl Acked {
     }
 }
 
-/// Starts the coordinator of a run whose robots are already in `filter` and `store`.
-/// `acked` lists the records already stored (recovery), which are NOT re-applied here.
-pub fn spawn(id: String, filter: FastSlam, store: Store, cfg: CoordinatorConfig) -> RunHandle {
+/// What a restarted server knows of a run it recovers.
+#[derive(Debug)]
+pub struct Recovered {
+    /// The latest snapshot's filter position (its filter is the one passed to [`spawn`]).
+    pub applied: u64,
+    pub last: Option<OrderKey>,
+    pub trajectories: Trajectories,
+    /// Every registered robot: its start time, whether it is merged, and its stored
+    /// records' seq -> t.
+    pub robots: Vec<(String, f64, bool, BTreeMap<u64, f64>)>,
+    /// Stored records not in the snapshot, to apply again (in any order).
+    pub pending: Vec<Record>,
+}
+
+/// Starts the coordinator of a new run (`recovered: None`; its filter has no robots yet) or
+/// of a run recovered after a restart.
+pub fn spawn(
+    id: String,
+    filter: FastSlam,
+    store: Store,
+    cfg: CoordinatorConfig,
+    recovered: Option<Recovered>,
+) -> RunHandle {
     let (tx, rx) = mpsc::channel(cfg.queue_capacity.max(1));
     let (events, _) = broadcast::channel(256);
+    let snapshots = spawn_snapshot_writer(id.clone(), store.clone());
     let mut task = Coordinator {
         id: id.clone(),
         filter: Some(filter),
@@ -261,6 +306,10 @@ pub fn spawn(id: String, filter: FastSlam, store: Store, cfg: CoordinatorConfig)
         merger: Merger::new(cfg.reorder_window),
         acked: HashMap::new(),
         applied: 0,
+        last_snapshot: 0,
+        trajectories: Arc::new(Trajectories::new()),
+        all_step_ns: Vec::new(),
+        snapshots,
         status: "active".into(),
         step_ns: Vec::new(),
         last_publish: None,
@@ -269,17 +318,21 @@ pub fn spawn(id: String, filter: FastSlam, store: Store, cfg: CoordinatorConfig)
         state_tx: None,
         cfg,
     };
-    let now = Instant::now();
-    if let Some(f) = &task.filter {
-        for r in f.robots() {
-            task.merger.add_robot(&r.id, r.last_t, 0, now);
-            task.acked.insert(
-                r.id.clone(),
-                Acked {
-                    merged: true,
-                    ..Default::default()
-                },
-            );
+    if let Some(r) = recovered {
+        let now = Instant::now();
+        task.applied = r.applied;
+        task.last_snapshot = r.applied;
+        task.trajectories = Arc::new(r.trajectories);
+        task.merger.restore_applied(r.last);
+        for (robot, t0, merged, seqs) in &r.robots {
+            if *merged {
+                task.merger.restore_robot(robot, *t0, seqs, now);
+            }
+            task.acked
+                .insert(robot.clone(), Acked::restore(seqs, *merged));
+        }
+        for rec in r.pending {
+            task.merger.restore_pending(rec);
         }
     }
     let (state_tx, state_rx) = watch::channel(Arc::new(task.build_state()));
@@ -293,6 +346,45 @@ pub fn spawn(id: String, filter: FastSlam, store: Store, cfg: CoordinatorConfig)
     }
 }
 
+/// A snapshot to write, and who waits for it.
+type SnapshotJob = (RunSnapshot, Option<oneshot::Sender<Result<(), ApiError>>>);
+
+/// Writes a run's snapshots one after another (so that a later one is never overwritten by
+/// an earlier one), encoding them off the async runtime.
+fn spawn_snapshot_writer(run: String, store: Store) -> mpsc::UnboundedSender<SnapshotJob> {
+    let (tx, mut rx) = mpsc::unbounded_channel::<SnapshotJob>();
+    tokio::spawn(async move {
+        while let Some((snap, reply)) = rx.recv().await {
+            let applied = snap.applied;
+            let t = snap.filed_t();
+            let res = async {
+                let data = tokio::task::spawn_blocking(move || snap.encode())
+                    .await
+                    .map_err(ApiError::internal)??;
+                store
+                    .put_snapshot(
+                        &run,
+                        &NewSnapshot {
+                            applied: applied as i64,
+                            t,
+                            data,
+                        },
+                    )
+                    .await?;
+                Ok(())
+            }
+            .await;
+            if let Err(e) = &res {
+                tracing::error!(run = %run, applied, error = %e, "storing a snapshot failed");
+            }
+            if let Some(reply) = reply {
+                let _ = reply.send(res);
+            }
+        }
+    });
+    tx
+}
+
 struct Coordinator {
     id: String,
     /// Taken while a blocking thread steps it.
@@ -301,6 +393,12 @@ struct Coordinator {
     merger: Merger,
     acked: HashMap<String, Acked>,
     applied: u64,
+    /// `applied` at the last snapshot.
+    last_snapshot: u64,
+    trajectories: Arc<Trajectories>,
+    /// Every step time of this process's life of the run [ns].
+    all_step_ns: Vec<u64>,
+    snapshots: mpsc::UnboundedSender<SnapshotJob>,
     status: String,
     step_ns: Vec<u64>,
     last_publish: Option<Instant>,
@@ -350,12 +448,15 @@ impl Coordinator {
                         t0,
                         reply,
                     } => {
-                        let r = self.add_robot(robot, start, t0);
+                        let r = self.add_robot(robot, start, t0).await;
                         let _ = reply.send(r);
                     }
                     Command::End { reply } => {
                         ended = true;
                         end_reply = Some(reply);
+                    }
+                    Command::Trajectories { reply } => {
+                        let _ = reply.send(Ok(self.trajectories.clone()));
                     }
                 }
             }
@@ -370,17 +471,104 @@ impl Coordinator {
                 self.status = "ended".into();
                 let _ = self.events.send(Event::RunEnded);
                 self.publish(true);
+                let stored = self.finish().await;
                 // Answered only now, so that the caller sees the final state.
                 if let Some(reply) = end_reply.take() {
-                    let _ = reply.send(Ok(()));
+                    let _ = reply.send(stored);
                 }
                 break;
+            }
+            if self.applied >= self.last_snapshot + self.cfg.snapshot_every.max(1) {
+                self.snapshot(None);
             }
             self.publish(false);
         }
     }
 
-    fn add_robot(
+    /// Queues a snapshot of the current filter; `reply` hears when it is stored.
+    fn snapshot(&mut self, reply: Option<oneshot::Sender<Result<(), ApiError>>>) {
+        let filter = self
+            .filter
+            .as_ref()
+            .expect("the filter is home between steps");
+        let snap = RunSnapshot {
+            filter: filter.snapshot(),
+            applied: self.applied,
+            last: self
+                .merger
+                .applied_key()
+                .map(|k| (k.t(), k.robot().to_string(), k.seq())),
+            trajectories: (*self.trajectories).clone(),
+        };
+        self.last_snapshot = self.applied;
+        if let Err(mpsc::error::SendError((_, Some(reply)))) = self.snapshots.send((snap, reply)) {
+            let _ = reply.send(Err(ApiError::internal(anyhow::anyhow!(
+                "the snapshot writer has stopped"
+            ))));
+        }
+    }
+
+    /// Stores a final snapshot and the run's result; called when the run ends.
+    async fn finish(&mut self) -> Result<(), ApiError> {
+        let (tx, rx) = oneshot::channel();
+        self.snapshot(Some(tx));
+        rx.await.map_err(ApiError::internal)??;
+        let state = self.build_state();
+        let metrics = self.metrics(&state);
+        let body = serde_json::to_string(&history::RunResult {
+            state: &state,
+            trajectories: &self.trajectories,
+            metrics: &metrics,
+        })
+        .map_err(ApiError::internal)?;
+        self.store
+            .put_artifact(&self.id, history::RESULT, &body)
+            .await?;
+        Ok(())
+    }
+
+    fn metrics(&self, state: &RunState) -> RunMetrics {
+        let filter = self
+            .filter
+            .as_ref()
+            .expect("the filter is home between steps");
+        let mut ns = self.all_step_ns.clone();
+        ns.sort_unstable();
+        let pct = |p: f64| {
+            ns.get(((ns.len().max(1) - 1) as f64 * p).round() as usize)
+                .map_or(0.0, |v| *v as f64 / 1e6)
+        };
+        let stats = filter.stats();
+        RunMetrics {
+            applied: self.applied,
+            t_start: self
+                .trajectories
+                .values()
+                .filter_map(|p| p.first().map(|p| p[0]))
+                .reduce(f64::min),
+            step_ms_p50: pct(0.5),
+            step_ms_p95: pct(0.95),
+            step_ms_mean: if ns.is_empty() {
+                0.0
+            } else {
+                ns.iter().sum::<u64>() as f64 / ns.len() as f64 / 1e6
+            },
+            landmark_updates: stats.landmark_updates,
+            ns_per_landmark_update: if stats.landmark_updates > 0 {
+                stats.update_nanos as f64 / stats.landmark_updates as f64
+            } else {
+                0.0
+            },
+            updater: filter.config().updater.clone(),
+            particles: filter.config().particles,
+            seed: filter.config().seed,
+            resamples: stats.resamples,
+            landmarks: state.landmarks.len(),
+            final_ess: state.ess,
+        }
+    }
+
+    async fn add_robot(
         &mut self,
         robot: String,
         start: Option<PoseGaussian>,
@@ -397,10 +585,14 @@ impl Coordinator {
             .expect("the filter is home between steps");
         let merged = match &start {
             Some(s) => {
-                filter
+                let i = filter
                     .add_robot(&robot, s, t0)
                     .map_err(|e| ApiError::BadRequest(e.to_string()))?;
                 self.merger.add_robot(&robot, t0, 0, Instant::now());
+                Arc::make_mut(&mut self.trajectories).insert(
+                    robot.clone(),
+                    vec![history::trajectory_point(filter, i, t0)],
+                );
                 true
             }
             None => false,
@@ -412,6 +604,13 @@ impl Coordinator {
                 ..Default::default()
             },
         );
+        if merged {
+            // A recovery restores robots from snapshots: store one that has this robot
+            // before the registration is answered.
+            let (tx, rx) = oneshot::channel();
+            self.snapshot(Some(tx));
+            rx.await.map_err(ApiError::internal)??;
+        }
         let mode = if merged { "mapping" } else { "unknown_pose" };
         let _ = self.events.send(Event::RobotJoined {
             robot,
@@ -557,20 +756,29 @@ impl Coordinator {
             .filter
             .take()
             .expect("the filter is home between steps");
+        let mut trajectories = std::mem::take(&mut self.trajectories);
         let res = tokio::task::spawn_blocking(move || {
             let mut reports: Vec<(StepReport, u64)> = Vec::with_capacity(records.len());
             let mut errors = Vec::new();
+            let traj = Arc::make_mut(&mut trajectories);
             for r in &records {
                 let t0 = Instant::now();
                 match filter.step(r) {
-                    Ok(rep) => reports.push((rep, t0.elapsed().as_nanos() as u64)),
+                    Ok(rep) => {
+                        reports.push((rep, t0.elapsed().as_nanos() as u64));
+                        if let (Some(i), Some(v)) =
+                            (filter.robot_index(&r.robot), traj.get_mut(&r.robot))
+                        {
+                            v.push(history::trajectory_point(&filter, i, r.t));
+                        }
+                    }
                     Err(e) => errors.push(format!("record {} of robot {:?}: {e}", r.seq, r.robot)),
                 }
             }
-            (filter, reports, errors)
+            (filter, trajectories, reports, errors)
         })
         .await;
-        let (filter, reports, errors) = match res {
+        let (filter, trajectories, reports, errors) = match res {
             Ok(v) => v,
             Err(e) => {
                 tracing::error!(run = %self.id, error = %e, "filter step panicked; the run stops");
@@ -579,6 +787,7 @@ impl Coordinator {
             }
         };
         self.filter = Some(filter);
+        self.trajectories = trajectories;
         for e in errors {
             // Records are validated before they are stored; a step error is a bug.
             tracing::error!(run = %self.id, error = %e, "a stored record could not be applied");
@@ -586,6 +795,7 @@ impl Coordinator {
         for (rep, ns) in reports {
             self.applied += 1;
             self.step_ns.push(ns);
+            self.all_step_ns.push(ns);
             if rep.resampled {
                 let _ = self.events.send(Event::Resampled {
                     applied: self.applied,

@@ -5,13 +5,18 @@
 //! streams in a deterministic order ([`merge::Merger`]) and steps the run's filter off the
 //! async runtime; the state is served as JSON and streamed over a websocket.
 //!
-//! In progress (issue 3): run creation, robot registration with tokens, record ingest
-//! (single, array, NDJSON) with per-record acknowledgements, state and live streaming work;
-//! the OpenAPI document, metrics, crash recovery, replay and the demo are still to come.
+//! Every run's snapshots, result and log stay in the store ([`history`], [`api_history`]):
+//! a restarted server recovers its active runs bit for bit ([`recovery`]), and finished runs
+//! can be scrubbed through, exported, re-run with another configuration and deleted.
 
+pub mod api_history;
 pub mod app;
 pub mod config;
 pub mod coordinator;
 pub mod error;
+pub mod history;
 pub mod merge;
+pub mod metrics;
+pub mod openapi;
+pub mod recovery;
 pub mod server;

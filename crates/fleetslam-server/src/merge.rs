@@ -35,8 +35,24 @@ impl OrderKey {
         }
     }
 
+    pub fn new(t: f64, robot: &str, seq: u64) -> Self {
+        Self {
+            t: TotalF64(t),
+            robot: robot.to_string(),
+            seq,
+        }
+    }
+
     pub fn t(&self) -> f64 {
         self.t.0
+    }
+
+    pub fn robot(&self) -> &str {
+        &self.robot
+    }
+
+    pub fn seq(&self) -> u64 {
+        self.seq
     }
 }
 
@@ -131,6 +147,43 @@ impl Merger {
                 last_heard: now,
             },
         );
+    }
+
+    /// Restores a robot's stream after a restart from the sequence numbers and times of its
+    /// stored records (`seqs`: seq -> t), which need not be contiguous.
+    pub fn restore_robot(&mut self, robot: &str, t0: f64, seqs: &BTreeMap<u64, f64>, now: Instant) {
+        let mut next_seq = 0;
+        let mut watermark = t0;
+        while let Some(t) = seqs.get(&next_seq) {
+            watermark = *t;
+            next_seq += 1;
+        }
+        let ahead = seqs.range(next_seq..).map(|(s, t)| (*s, *t)).collect();
+        self.streams.insert(
+            robot.to_string(),
+            Stream {
+                next_seq,
+                watermark,
+                ahead,
+                last_heard: now,
+            },
+        );
+    }
+
+    /// Restores the key of the last record handed out (from a snapshot) after a restart.
+    pub fn restore_applied(&mut self, key: Option<OrderKey>) {
+        self.applied = key;
+    }
+
+    /// Puts back a stored record that was not applied before a restart; its stream was
+    /// restored with [`Merger::restore_robot`], which already counts it.
+    pub fn restore_pending(&mut self, r: Record) {
+        self.pending.insert(OrderKey::of(&r), r);
+    }
+
+    /// The key of the last record handed out.
+    pub fn applied_key(&self) -> Option<&OrderKey> {
+        self.applied.as_ref()
     }
 
     pub fn has_robot(&self, robot: &str) -> bool {

@@ -45,6 +45,12 @@ pub async fn start(cfg: &ServerConfig) -> anyhow::Result<Running> {
             .with_context(|| format!("opening the store in {}", cfg.data_dir.display()))?,
     };
     let state = AppState::new(store.clone(), cfg.api());
+    let recovered = crate::recovery::recover(&state)
+        .await
+        .map_err(|e| anyhow::anyhow!("recovering runs: {e}"))?;
+    if recovered > 0 {
+        tracing::info!(runs = recovered, "recovered active runs");
+    }
     let listener = tokio::net::TcpListener::bind(&cfg.bind)
         .await
         .with_context(|| format!("listening on {}", cfg.bind))?;

@@ -13,128 +13,8 @@ use fleetslam_store::Store;
 use serde_json::{Value, json};
 use tower::ServiceExt;
 
-struct Harness {
-    router: axum::Router,
-    _dir: tempfile::TempDir,
-}
-
-async fn harness(config: ApiConfig) -> Harness {
-    let dir = tempfile::tempdir().unwrap();
-    let store = Store::open_default(dir.path()).await.unwrap();
-    Harness {
-        router: app(AppState::new(store, config)),
-        _dir: dir,
-    }
-}
-
-impl Harness {
-    async fn call(
-        &self,
-        method: &str,
-        uri: &str,
-        token: Option<&str>,
-        content_type: &str,
-        body: Vec<u8>,
-    ) -> (StatusCode, Value) {
-        let mut req = Request::builder()
-            .method(method)
-            .uri(uri)
-            .header(header::CONTENT_TYPE, content_type);
-        if let Some(t) = token {
-            req = req.header(header::AUTHORIZATION, format!("Bearer {t}"));
-        }
-        let resp = self
-            .router
-            .clone()
-            .oneshot(req.body(Body::from(body)).unwrap())
-            .await
-            .unwrap();
-        let status = resp.status();
-        let bytes = axum::body::to_bytes(resp.into_body(), usize::MAX)
-            .await
-            .unwrap();
-        let v = serde_json::from_slice(&bytes)
-            .unwrap_or(Value::String(String::from_utf8_lossy(&bytes).into()));
-        (status, v)
-    }
-
-    async fn json(
-        &self,
-        method: &str,
-        uri: &str,
-        token: Option<&str>,
-        body: Value,
-    ) -> (StatusCode, Value) {
-        self.call(
-            method,
-            uri,
-            token,
-            "application/json",
-            serde_json::to_vec(&body).unwrap(),
-        )
-        .await
-    }
-
-    async fn get(&self, uri: &str) -> (StatusCode, Value) {
-        self.call("GET", uri, None, "application/json", Vec::new())
-            .await
-    }
-
-    /// The run's state once `ready` holds (states are published at a bounded rate).
-    async fn state_when(&self, run: &str, ready: impl Fn(&Value) -> bool) -> Value {
-        let uri = format!("/v1/runs/{run}/state");
-        for _ in 0..200 {
-            let (_, v) = self.get(&uri).await;
-            if ready(&v) {
-                return v;
-            }
-            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
-        }
-        panic!("state never became ready: {}", self.get(&uri).await.1);
-    }
-}
-
-fn sim_log(robots: usize, duration: f64) -> Log {
-    let mut log = simulate(&SimConfig {
-        robots,
-        duration,
-        seed: 5,
-        ..SimConfig::default()
-    })
-    .unwrap()
-    .log;
-    log.sort();
-    log
-}
-
-/// Creates a run from the log's header and registers its robots; returns (run, tokens).
-async fn setup(h: &Harness, log: &Log, config: Value) -> (String, Vec<(String, String)>) {
-    let (s, v) = h
-        .json(
-            "POST",
-            "/v1/runs",
-            None,
-            json!({"name": "t", "header": log.header, "config": config}),
-        )
-        .await;
-    assert_eq!(s, StatusCode::CREATED, "{v}");
-    let run = v["id"].as_str().unwrap().to_string();
-    let mut tokens = Vec::new();
-    for r in &log.header.robots {
-        let (s, v) = h
-            .json(
-                "POST",
-                &format!("/v1/runs/{run}/robots"),
-                None,
-                json!({"id": r.id, "start": r.start, "t0": r.t0}),
-            )
-            .await;
-        assert_eq!(s, StatusCode::CREATED, "{v}");
-        assert_eq!(v["mode"], "mapping");
-        tokens.push((r.id.clone(), v["token"].as_str().unwrap().to_string()));
-    }
-    (run, tokens)
-}
+mod common;
+use common::{harness, setup, sim_log};
 
 #[tokio::test]
 async fn k_concurrent_robot_clients_equal_the_offline_run() {
@@ -188,19 +68,31 @@ async fn k_concurrent_robot_clients_equal_the_offline_run() {
     assert_eq!(s, StatusCode::CONFLICT, "{v}");
     assert!(v["message"].as_str().unwrap().contains("ended"), "{v}");
     let (_, v) = h.get(&format!("/v1/runs/{run}")).await;
-    let summary = &v["run"]["summary"];
     assert_eq!(
-        summary["applied"].as_u64().unwrap() as usize,
+        v["run"]["summary"]["applied"].as_u64().unwrap() as usize,
         log.records.len()
     );
+    // The ended run's state is its stored result.
+    let (s, summary) = h.get(&format!("/v1/runs/{run}/state")).await;
+    assert_eq!(s, StatusCode::OK, "{summary}");
+    assert_eq!(summary["status"], "ended");
 
     // Offline, same seed and configuration.
     let mut cfg: FilterConfig = FilterConfig::from_header(&log.header);
     cfg.particles = 60;
     cfg.seed = 11;
     let mut slam = FastSlam::new(cfg).unwrap();
-    run_log(&mut slam, &log, TrajectoryEstimate::Mean, |_, _| {}).unwrap();
+    let out = run_log(&mut slam, &log, TrajectoryEstimate::Mean, |_, _| {}).unwrap();
     let est = slam.estimate();
+    // Trajectories: the same poses after the same records, bit for bit.
+    let (_, traj) = h.get(&format!("/v1/runs/{run}/trajectories")).await;
+    for (robot, pts) in &out.estimate.trajectories {
+        let offline: Vec<[f64; 4]> = pts
+            .iter()
+            .map(|p| [p.t, p.pose.x, p.pose.y, p.pose.theta])
+            .collect();
+        assert_eq!(traj["robots"][robot], json!(offline), "robot {robot}");
+    }
     for (i, r) in est.robots.iter().enumerate() {
         let server = &summary["robots"][i];
         assert_eq!(server["id"], json!(r.id));

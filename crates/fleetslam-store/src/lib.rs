@@ -674,6 +674,84 @@ impl Store {
         Ok(raw.map(SnapshotRow::from))
     }
 
+    /// Every snapshot of a run as `(applied, t)`, in `applied` order, without their data: the
+    /// points a replay of the run can start from.
+    pub async fn snapshot_index(&self, run_id: &str) -> Result<Vec<(i64, f64)>, StoreError> {
+        let sql = "SELECT applied, t FROM snapshots WHERE run_id = $1 ORDER BY applied";
+        let rows = with_pool!(&self.inner.pool, pool => {
+            sqlx::query(sql)
+                .bind(run_id)
+                .fetch_all(pool)
+                .await?
+                .into_iter()
+                .map(|row| Ok((row.try_get::<i64, _>("applied")?, row.try_get::<f64, _>("t")?)))
+                .collect::<Result<Vec<_>, sqlx::Error>>()?
+        });
+        Ok(rows)
+    }
+
+    /// The run's snapshot with the highest `applied` not above `applied`.
+    pub async fn snapshot_at_or_before_applied(
+        &self,
+        run_id: &str,
+        applied: i64,
+    ) -> Result<Option<SnapshotRow>, StoreError> {
+        let sql = format!(
+            "SELECT {SNAPSHOT_COLUMNS} FROM snapshots WHERE run_id = $1 AND applied <= $2 \
+             ORDER BY applied DESC LIMIT 1"
+        );
+        let raw = with_pool!(&self.inner.pool, pool => {
+            sqlx::query_as::<_, RawSnapshot>(&sql).bind(run_id).bind(applied).fetch_optional(pool).await?
+        });
+        Ok(raw.map(SnapshotRow::from))
+    }
+
+    // ---------------------------------------------------------------- artifacts
+
+    /// Stores a named JSON document of a run (its final result, its ground truth, ...),
+    /// replacing one of the same name.
+    pub async fn put_artifact(
+        &self,
+        run_id: &str,
+        name: &str,
+        body: &str,
+    ) -> Result<(), StoreError> {
+        check_id("artifact name", name)?;
+        let sql = "INSERT INTO run_artifacts (run_id, name, body, created_at) VALUES ($1, $2, $3, $4) \
+                   ON CONFLICT (run_id, name) DO UPDATE SET body = excluded.body, \
+                   created_at = excluded.created_at";
+        with_pool!(&self.inner.pool, pool => {
+            sqlx::query(sql)
+                .bind(run_id)
+                .bind(name)
+                .bind(body)
+                .bind(now_ms())
+                .execute(pool)
+                .await
+                .map_err(|e| StoreError::from_db(e, || format!("artifact {name} of run {run_id}")))?;
+        });
+        Ok(())
+    }
+
+    /// A named JSON document of a run, as stored.
+    pub async fn get_artifact(
+        &self,
+        run_id: &str,
+        name: &str,
+    ) -> Result<Option<String>, StoreError> {
+        let sql = "SELECT body FROM run_artifacts WHERE run_id = $1 AND name = $2";
+        let body = with_pool!(&self.inner.pool, pool => {
+            sqlx::query(sql)
+                .bind(run_id)
+                .bind(name)
+                .fetch_optional(pool)
+                .await?
+                .map(|row| row.try_get::<String, _>("body"))
+                .transpose()?
+        });
+        Ok(body)
+    }
+
     // ---------------------------------------------------------------- evaluations
 
     /// Stores an evaluation result of a run.

@@ -155,7 +155,14 @@ impl Writer {
         self.next.remove(run_id);
         let deleted = with_pool!(&self.pool, pool => {
             let mut tx = pool.begin().await?;
-            for table in ["training_rows", "evaluations", "snapshots", "observations", "robots"] {
+            for table in [
+                "run_artifacts",
+                "training_rows",
+                "evaluations",
+                "snapshots",
+                "observations",
+                "robots",
+            ] {
                 sqlx::query(&format!("DELETE FROM {table} WHERE run_id = $1"))
                     .bind(run_id)
                     .execute(&mut *tx)

@@ -127,6 +127,7 @@ suite!(
     snapshots_latest_and_at_or_before,
     delete_run_removes_everything,
     evaluations_training_and_models,
+    artifacts_and_snapshot_index,
 );
 
 fn new_run(id: &str) -> NewRun {
@@ -649,6 +650,59 @@ async fn snapshots_latest_and_at_or_before(store: &Store) {
             .await,
         Err(StoreError::NotFound(_))
     ));
+}
+
+async fn artifacts_and_snapshot_index(store: &Store) {
+    store.create_run(&new_run("art")).await.expect("create");
+    assert_eq!(store.get_artifact("art", "truth").await.expect("get"), None);
+    store
+        .put_artifact("art", "truth", r#"{"a":1}"#)
+        .await
+        .expect("put");
+    store
+        .put_artifact("art", "truth", r#"{"a":2}"#)
+        .await
+        .expect("replace");
+    assert_eq!(
+        store
+            .get_artifact("art", "truth")
+            .await
+            .expect("get")
+            .as_deref(),
+        Some(r#"{"a":2}"#)
+    );
+    assert!(matches!(
+        store.put_artifact("missing", "truth", "{}").await,
+        Err(StoreError::NotFound(_))
+    ));
+    assert!(matches!(
+        store.put_artifact("art", "", "{}").await,
+        Err(StoreError::Invalid(_))
+    ));
+    for (applied, t) in [(30, 3.0), (10, 1.0), (20, 2.0)] {
+        store
+            .put_snapshot(
+                "art",
+                &NewSnapshot {
+                    applied,
+                    t,
+                    data: vec![applied as u8],
+                },
+            )
+            .await
+            .expect("snapshot");
+    }
+    assert_eq!(
+        store.snapshot_index("art").await.expect("index"),
+        vec![(10, 1.0), (20, 2.0), (30, 3.0)]
+    );
+    let at = |a| store.snapshot_at_or_before_applied("art", a);
+    assert_eq!(at(25).await.expect("at").map(|s| s.data), Some(vec![20]));
+    assert_eq!(at(30).await.expect("at").map(|s| s.applied), Some(30));
+    assert!(at(9).await.expect("at").is_none());
+    assert!(store.delete_run("art").await.expect("delete"));
+    assert_eq!(store.get_artifact("art", "truth").await.expect("get"), None);
+    assert!(store.snapshot_index("art").await.expect("index").is_empty());
 }
 
 async fn delete_run_removes_everything(store: &Store) {

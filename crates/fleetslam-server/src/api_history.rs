@@ -1,0 +1,592 @@
+//! The run-history endpoints: state at a chosen time, timeline, trajectories, ground truth,
+//! evaluation, export, re-run and deletion.
+
+use crate::app::{AppState, check_admin, parse_json, token_hash};
+use crate::coordinator::RunState;
+use crate::error::ApiError;
+use crate::history::{self, RESULT, TRUTH, Trajectories};
+use axum::Json;
+use axum::body::Bytes;
+use axum::extract::{Path, Query, State};
+use axum::http::{HeaderMap, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use fleetslam_core::config::{FilterConfig, overlay};
+use fleetslam_core::log::{LogHeader, RobotStart};
+use fleetslam_core::pose::PoseGaussian;
+use fleetslam_data::evaluate::{EvalOptions, evaluate};
+use fleetslam_data::formats::{write_landmarks_csv, write_tum};
+use fleetslam_store::{NewRobot, NewRun, RunRow, Store};
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+use std::collections::HashMap;
+use std::io::Write;
+use std::sync::Arc;
+
+/// The compact summary stored with a run when it ends and shown in run lists.
+pub fn summary(s: &RunState, records: i64, metrics: Option<&history::RunMetrics>) -> Value {
+    json!({
+        "robots": s.robots.len(),
+        "records": records,
+        "applied": s.applied,
+        "landmarks": s.landmarks.len(),
+        "t_start": metrics.and_then(|m| m.t_start),
+        "t_end": s.t,
+        "duration_s": metrics.and_then(|m| Some(s.t? - m.t_start?)),
+        "particles": s.particles,
+        "final_ess": s.ess,
+        "resamples": s.resamples,
+        "updater": metrics.map(|m| m.updater.clone()),
+        "step_ms_p50": metrics.map(|m| m.step_ms_p50),
+        "ns_per_landmark_update": metrics.map(|m| m.ns_per_landmark_update),
+    })
+}
+
+/// A finished run's stored result.
+#[derive(Debug, Deserialize)]
+struct StoredResult {
+    state: Value,
+    trajectories: Trajectories,
+    metrics: Value,
+}
+
+async fn run_row(store: &Store, run: &str) -> Result<RunRow, ApiError> {
+    store
+        .get_run(run)
+        .await?
+        .ok_or_else(|| ApiError::NotFound(format!("no run {run}: list runs with GET /v1/runs")))
+}
+
+async fn stored_result(store: &Store, run: &str) -> Result<Option<StoredResult>, ApiError> {
+    match store.get_artifact(run, RESULT).await? {
+        Some(body) => serde_json::from_str(&body)
+            .map(Some)
+            .map_err(|e| ApiError::internal(anyhow::anyhow!("run {run}'s result: {e}"))),
+        None => Ok(None),
+    }
+}
+
+/// What a run shows now: its live state and trajectories, or its stored result.
+struct View {
+    state: Value,
+    trajectories: Arc<Trajectories>,
+    metrics: Option<Value>,
+}
+
+async fn view(state: &AppState, run: &str) -> Result<View, ApiError> {
+    let live = state.runs.read().await.get(run).cloned();
+    if let Some(live) = live {
+        let s = live.handle.state.borrow().clone();
+        // A run that is ending has no coordinator to ask: its stored result is below.
+        if let Ok(trajectories) = live.handle.trajectories().await {
+            return Ok(View {
+                state: serde_json::to_value(&*s).map_err(ApiError::internal)?,
+                trajectories,
+                metrics: None,
+            });
+        }
+    }
+    let row = run_row(&state.store, run).await?;
+    if let Some(r) = stored_result(&state.store, run).await? {
+        return Ok(View {
+            state: r.state,
+            trajectories: Arc::new(r.trajectories),
+            metrics: Some(r.metrics),
+        });
+    }
+    // A run that failed or whose recovery failed: its latest snapshot and the log after it.
+    let s = history::state_at(
+        &state.store,
+        run,
+        &row.status,
+        f64::MAX,
+        state.config.coordinator.particle_sample,
+    )
+    .await?;
+    Ok(View {
+        state: serde_json::to_value(&s).map_err(ApiError::internal)?,
+        trajectories: Arc::default(),
+        metrics: None,
+    })
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StateQuery {
+    /// Data time [s]: the state after every record up to it.
+    t: Option<f64>,
+}
+
+/// `GET /v1/runs/{run}/state[?t=SECONDS]`
+#[utoipa::path(get, path = "/v1/runs/{run}/state", tag = "runs",
+    params(("run" = String, Path, description = "Run id"),
+           ("t" = Option<f64>, Query, description = "Data time [s]: the state as of then (scrubbing)")),
+    responses((status = 200, description = "The run's state", body = RunState),
+              (status = 404, description = "No such run, or no state that early", body = crate::error::ErrorBody)))]
+pub async fn get_state(
+    State(state): State<AppState>,
+    Path(run): Path<String>,
+    Query(q): Query<StateQuery>,
+) -> Result<Json<Value>, ApiError> {
+    match q.t {
+        Some(t) => {
+            if !t.is_finite() {
+                return Err(ApiError::BadRequest(format!(
+                    "t must be a finite time in seconds, got {t}"
+                )));
+            }
+            let row = run_row(&state.store, &run).await?;
+            let s = history::state_at(
+                &state.store,
+                &run,
+                &row.status,
+                t,
+                state.config.coordinator.particle_sample,
+            )
+            .await?;
+            Ok(Json(serde_json::to_value(&s).map_err(ApiError::internal)?))
+        }
+        None => Ok(Json(view(&state, &run).await?.state)),
+    }
+}
+
+/// `GET /v1/runs/{run}/timeline`: the span of data time a run covers, for scrubbing.
+#[utoipa::path(get, path = "/v1/runs/{run}/timeline", tag = "runs",
+    params(("run" = String, Path, description = "Run id")),
+    responses((status = 200, description = "t_start, t_end (data time [s]), records applied, snapshots")))]
+pub async fn timeline(
+    State(state): State<AppState>,
+    Path(run): Path<String>,
+) -> Result<Json<Value>, ApiError> {
+    let v = view(&state, &run).await?;
+    let t_start = v
+        .trajectories
+        .values()
+        .filter_map(|p| p.first().map(|p| p[0]))
+        .fold(None, |m: Option<f64>, t| Some(m.map_or(t, |m| m.min(t))));
+    let snapshots: Vec<Value> = state
+        .store
+        .snapshot_index(&run)
+        .await?
+        .into_iter()
+        .filter(|(_, t)| *t > f64::MIN)
+        .map(|(applied, t)| json!({"applied": applied, "t": t}))
+        .collect();
+    Ok(Json(json!({
+        "t_start": t_start,
+        "t_end": v.state.get("t"),
+        "applied": v.state.get("applied"),
+        "snapshots": snapshots,
+    })))
+}
+
+/// `GET /v1/runs/{run}/trajectories`
+#[utoipa::path(get, path = "/v1/runs/{run}/trajectories", tag = "runs",
+    params(("run" = String, Path, description = "Run id")),
+    responses((status = 200, description = "{\"robots\": {id: [[t, x, y, theta], ...]}}: the mean pose after each record")))]
+pub async fn trajectories(
+    State(state): State<AppState>,
+    Path(run): Path<String>,
+) -> Result<Json<Value>, ApiError> {
+    let v = view(&state, &run).await?;
+    Ok(Json(json!({ "robots": &*v.trajectories })))
+}
+
+/// `PUT /v1/runs/{run}/truth` (admin): the run's ground truth, for overlays and evaluation.
+#[utoipa::path(put, path = "/v1/runs/{run}/truth", tag = "runs",
+    params(("run" = String, Path, description = "Run id")),
+    request_body(content = Object, description = "{\"robots\": {id: [[t, x, y, theta]]}, \"landmarks\": [{\"id\", \"x\", \"y\"}]}"),
+    responses((status = 204, description = "Stored"), (status = 400, body = crate::error::ErrorBody)))]
+pub async fn put_truth(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+    Path(run): Path<String>,
+    body: Bytes,
+) -> Result<StatusCode, ApiError> {
+    check_admin(&state, &headers)?;
+    run_row(&state.store, &run).await?;
+    let truth = history::truth_from_json(&body)?;
+    let text = history::truth_to_json(&truth).to_string();
+    state.store.put_artifact(&run, TRUTH, &text).await?;
+    Ok(StatusCode::NO_CONTENT)
+}
+
+/// `GET /v1/runs/{run}/truth`
+#[utoipa::path(get, path = "/v1/runs/{run}/truth", tag = "runs",
+    params(("run" = String, Path, description = "Run id")),
+    responses((status = 200, description = "The ground truth"), (status = 404, body = crate::error::ErrorBody)))]
+pub async fn get_truth(
+    State(state): State<AppState>,
+    Path(run): Path<String>,
+) -> Result<Response, ApiError> {
+    run_row(&state.store, &run).await?;
+    match state.store.get_artifact(&run, TRUTH).await? {
+        Some(body) => Ok(([(header::CONTENT_TYPE, "application/json")], body).into_response()),
+        None => Err(ApiError::NotFound(format!(
+            "run {run} has no ground truth: upload it with PUT /v1/runs/{run}/truth"
+        ))),
+    }
+}
+
+/// Whether a run's estimate is in its ground truth's frame: every robot started at a known
+/// pose and the header says the poses are truth's.
+async fn shared_frame(store: &Store, row: &RunRow) -> Result<bool, ApiError> {
+    let header_says = row
+        .header
+        .as_ref()
+        .and_then(|h| h.get("truth_frame"))
+        .and_then(Value::as_bool)
+        .unwrap_or(false);
+    let robots = store.robots(&row.id).await?;
+    Ok(header_says && robots.iter().all(|r| r.start.is_some()))
+}
+
+/// `GET /v1/runs/{run}/evaluation`: the run's errors against its ground truth.
+#[utoipa::path(get, path = "/v1/runs/{run}/evaluation", tag = "runs",
+    params(("run" = String, Path, description = "Run id")),
+    responses((status = 200, description = "ATE per robot and team, landmark RMSE (as `fleetslam evaluate`)"),
+              (status = 404, description = "No such run or no ground truth", body = crate::error::ErrorBody)))]
+pub async fn evaluation(
+    State(state): State<AppState>,
+    Path(run): Path<String>,
+) -> Result<Json<Value>, ApiError> {
+    let row = run_row(&state.store, &run).await?;
+    let Some(truth) = state.store.get_artifact(&run, TRUTH).await? else {
+        return Err(ApiError::NotFound(format!(
+            "run {run} has no ground truth: upload it with PUT /v1/runs/{run}/truth"
+        )));
+    };
+    let truth = history::truth_from_json(truth.as_bytes())
+        .map_err(|e| ApiError::internal(anyhow::anyhow!("stored truth: {e}")))?;
+    let v = view(&state, &run).await?;
+    let landmarks: Vec<crate::coordinator::LandmarkState> =
+        serde_json::from_value(v.state.get("landmarks").cloned().unwrap_or(json!([])))
+            .map_err(ApiError::internal)?;
+    let est = history::to_truth(&v.trajectories, &history::landmark_rows(&landmarks));
+    let shared = shared_frame(&state.store, &row).await?;
+    let eval = evaluate(&est, &truth, shared, &EvalOptions::default());
+    Ok(Json(
+        serde_json::to_value(&eval).map_err(ApiError::internal)?,
+    ))
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ExportQuery {
+    /// `zip` (default): every file; or one file: `log`, `landmarks`, `metrics`, `tum`
+    /// (with `robot`).
+    format: Option<String>,
+    robot: Option<String>,
+}
+
+/// The header of a run's exported log: the stored header with the robots as registered.
+async fn export_header(store: &Store, row: &RunRow) -> Result<LogHeader, ApiError> {
+    let config: FilterConfig = serde_json::from_value(row.config.clone())
+        .map_err(|e| ApiError::internal(anyhow::anyhow!("run {}'s config: {e}", row.id)))?;
+    let mut header: LogHeader = match &row.header {
+        Some(h) => serde_json::from_value(h.clone())
+            .map_err(|e| ApiError::internal(anyhow::anyhow!("run {}'s header: {e}", row.id)))?,
+        None => serde_json::from_value(json!({
+            "fleetslam_log": fleetslam_core::log::LOG_VERSION,
+            "landmark_kind": config.landmark_kind,
+            "motion_model": config.motion_model,
+            "landmark_ids": config.association == fleetslam_core::config::Association::Known,
+        }))
+        .map_err(ApiError::internal)?,
+    };
+    header.robots = store
+        .robots(&row.id)
+        .await?
+        .into_iter()
+        .map(|r| {
+            Ok(RobotStart {
+                id: r.robot_id,
+                start: r
+                    .start
+                    .map(serde_json::from_value::<PoseGaussian>)
+                    .transpose()
+                    .map_err(ApiError::internal)?,
+                t0: r.t0,
+            })
+        })
+        .collect::<Result<_, ApiError>>()?;
+    Ok(header)
+}
+
+/// The stored log as NDJSON: the header, then every record in arrival order.
+async fn export_log(store: &Store, row: &RunRow) -> Result<Vec<u8>, ApiError> {
+    let header = export_header(store, row).await?;
+    let mut out = serde_json::to_vec(&header).map_err(ApiError::internal)?;
+    out.push(b'\n');
+    for o in history::all_records(store, &row.id).await? {
+        out.extend_from_slice(o.body.as_bytes());
+        out.push(b'\n');
+    }
+    Ok(out)
+}
+
+/// `GET /v1/runs/{run}/export[?format=zip|log|landmarks|metrics|tum&robot=ID]`
+#[utoipa::path(get, path = "/v1/runs/{run}/export", tag = "runs",
+    params(("run" = String, Path, description = "Run id"),
+           ("format" = Option<String>, Query, description = "zip (default), log, landmarks, metrics, tum"),
+           ("robot" = Option<String>, Query, description = "The robot, for format=tum")),
+    responses((status = 200, description = "A zip of trajectory_<robot>.tum, landmarks.csv, metrics.json and log.ndjson (the files `fleetslam run` writes, and the log it reads), or one of them")))]
+pub async fn export(
+    State(state): State<AppState>,
+    Path(run): Path<String>,
+    Query(q): Query<ExportQuery>,
+) -> Result<Response, ApiError> {
+    let row = run_row(&state.store, &run).await?;
+    let v = view(&state, &run).await?;
+    let landmarks: Vec<crate::coordinator::LandmarkState> =
+        serde_json::from_value(v.state.get("landmarks").cloned().unwrap_or(json!([])))
+            .map_err(ApiError::internal)?;
+    let est = history::to_truth(&v.trajectories, &history::landmark_rows(&landmarks));
+    let csv = || {
+        let mut b = Vec::new();
+        write_landmarks_csv(&mut b, &est.landmarks).map(|_| b)
+    };
+    let tum = |pts| {
+        let mut b = Vec::new();
+        write_tum(&mut b, pts).map(|_| b)
+    };
+    let mut metrics = v.metrics.clone().unwrap_or_else(|| json!({}));
+    if let Value::Object(m) = &mut metrics {
+        m.insert(
+            "shared_frame".into(),
+            json!(shared_frame(&state.store, &row).await?),
+        );
+        m.insert("run".into(), json!(run));
+        m.insert("status".into(), json!(row.status));
+    }
+    let metrics = serde_json::to_vec_pretty(&metrics).map_err(ApiError::internal)?;
+    let file = |name: String, ctype: &'static str, body: Vec<u8>| {
+        (
+            [
+                (header::CONTENT_TYPE, ctype.to_string()),
+                (
+                    header::CONTENT_DISPOSITION,
+                    format!("attachment; filename=\"{name}\""),
+                ),
+            ],
+            body,
+        )
+            .into_response()
+    };
+    match q.format.as_deref().unwrap_or("zip") {
+        "log" => Ok(file(
+            "log.ndjson".into(),
+            "application/x-ndjson",
+            export_log(&state.store, &row).await?,
+        )),
+        "landmarks" => Ok(file(
+            "landmarks.csv".into(),
+            "text/csv",
+            csv().map_err(ApiError::internal)?,
+        )),
+        "metrics" => Ok(file("metrics.json".into(), "application/json", metrics)),
+        "tum" => {
+            let robot = q.robot.ok_or_else(|| {
+                ApiError::BadRequest("format=tum needs robot=<id>: one file per robot".into())
+            })?;
+            let pts = est.trajectories.get(&robot).ok_or_else(|| {
+                ApiError::NotFound(format!("run {run} has no trajectory of robot {robot:?}"))
+            })?;
+            Ok(file(
+                format!("trajectory_{robot}.tum"),
+                "text/plain",
+                tum(pts).map_err(ApiError::internal)?,
+            ))
+        }
+        "zip" => {
+            let log = export_log(&state.store, &row).await?;
+            let mut files: Vec<(String, Vec<u8>)> = Vec::new();
+            for (robot, pts) in &est.trajectories {
+                files.push((
+                    format!("trajectory_{robot}.tum"),
+                    tum(pts).map_err(ApiError::internal)?,
+                ));
+            }
+            files.push(("landmarks.csv".into(), csv().map_err(ApiError::internal)?));
+            files.push(("metrics.json".into(), metrics));
+            files.push(("log.ndjson".into(), log));
+            let zip = tokio::task::spawn_blocking(move || zip_files(&files))
+                .await
+                .map_err(ApiError::internal)?
+                .map_err(ApiError::internal)?;
+            Ok(file(format!("run-{run}.zip"), "application/zip", zip))
+        }
+        other => Err(ApiError::BadRequest(format!(
+            "format must be zip, log, landmarks, metrics or tum, got {other:?}"
+        ))),
+    }
+}
+
+fn zip_files(files: &[(String, Vec<u8>)]) -> zip::result::ZipResult<Vec<u8>> {
+    let mut w = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    let opts = zip::write::SimpleFileOptions::default()
+        .compression_method(zip::CompressionMethod::Deflated);
+    for (name, body) in files {
+        w.start_file(name.as_str(), opts)?;
+        w.write_all(body)?;
+    }
+    Ok(w.finish()?.into_inner())
+}
+
+/// Body of `POST /v1/runs/{run}/rerun`.
+#[derive(Debug, Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Rerun {
+    pub name: Option<String>,
+    /// `FilterConfig` fields to change (particles, updater, seed, ...) over the run's own.
+    #[schema(value_type = Option<Object>)]
+    pub config: Option<Value>,
+}
+
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct RerunStarted {
+    /// The new run, which receives the stored log and ends by itself.
+    pub id: String,
+    #[schema(value_type = Object)]
+    pub config: FilterConfig,
+}
+
+/// `POST /v1/runs/{run}/rerun` (admin): the stored log of a run again, with another
+/// configuration, as a new run (for comparisons such as EKF against MLP on the same data).
+#[utoipa::path(post, path = "/v1/runs/{run}/rerun", tag = "runs",
+    params(("run" = String, Path, description = "The run whose log to re-run")),
+    request_body = Rerun,
+    responses((status = 202, description = "The new run is being fed", body = RerunStarted),
+              (status = 400, body = crate::error::ErrorBody)))]
+pub async fn rerun(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+    Path(run): Path<String>,
+    body: Bytes,
+) -> Result<(StatusCode, Json<RerunStarted>), ApiError> {
+    check_admin(&state, &headers)?;
+    let req: Rerun = if body.iter().all(u8::is_ascii_whitespace) {
+        Rerun {
+            name: None,
+            config: None,
+        }
+    } else {
+        parse_json("rerun", &body)?
+    };
+    let row = run_row(&state.store, &run).await?;
+    let base: FilterConfig = serde_json::from_value(row.config.clone())
+        .map_err(|e| ApiError::internal(anyhow::anyhow!("run {run}'s config: {e}")))?;
+    let config = overlay(&base, req.config.unwrap_or(Value::Null))
+        .map_err(|e| ApiError::BadRequest(format!("config: {e}")))?;
+    config
+        .validate()
+        .map_err(|e| ApiError::BadRequest(format!("config: {e}")))?;
+    let filter = history::new_filter(&config)?;
+    let id = uuid::Uuid::new_v4().to_string();
+    let name = req
+        .name
+        .or_else(|| Some(format!("rerun of {}", row.name.as_deref().unwrap_or(&run))));
+    state
+        .store
+        .create_run(&NewRun {
+            id: id.clone(),
+            name,
+            config: serde_json::to_value(&config).map_err(ApiError::internal)?,
+            header: row.header.clone(),
+        })
+        .await?;
+    if let Some(truth) = state.store.get_artifact(&run, TRUTH).await? {
+        state.store.put_artifact(&id, TRUTH, &truth).await?;
+    }
+    let live = state
+        .insert_live(id.clone(), config.clone(), filter, None, HashMap::new())
+        .await;
+    for r in state.store.robots(&run).await? {
+        let start: Option<PoseGaussian> = r
+            .start
+            .clone()
+            .map(serde_json::from_value)
+            .transpose()
+            .map_err(ApiError::internal)?;
+        let token = hex::encode(rand::random::<[u8; 24]>());
+        state
+            .store
+            .add_robot(
+                &id,
+                &NewRobot {
+                    robot_id: r.robot_id.clone(),
+                    start: r.start.clone(),
+                    token_hash: token_hash(&token),
+                    t0: r.t0,
+                },
+            )
+            .await?;
+        live.handle
+            .add_robot(r.robot_id, start, r.t0.unwrap_or(0.0))
+            .await?;
+    }
+    let st = state.clone();
+    let (src, dst) = (run.clone(), id.clone());
+    tokio::spawn(async move {
+        if let Err(e) = feed_rerun(&st, &src, &dst).await {
+            tracing::error!(run = %dst, source = %src, error = %e, "re-run failed");
+            let _ = st
+                .store
+                .set_run_status(&dst, fleetslam_store::STATUS_FAILED, None)
+                .await;
+            st.runs.write().await.remove(&dst);
+        }
+    });
+    tracing::info!(run = %id, source = %run, "re-run started");
+    Ok((StatusCode::ACCEPTED, Json(RerunStarted { id, config })))
+}
+
+/// Feeds a run's stored log, in arrival order, to a new run and ends it.
+async fn feed_rerun(state: &AppState, src: &str, dst: &str) -> Result<(), ApiError> {
+    let live = state.live(dst).await?;
+    let records = history::parse_records(&history::all_records(&state.store, src).await?)?;
+    for chunk in records.chunks(512) {
+        loop {
+            match live.handle.ingest(chunk.to_vec()).await {
+                Ok(acks) => {
+                    if let Some(a) = acks.iter().find(|a| a.status == "rejected") {
+                        return Err(ApiError::internal(anyhow::anyhow!(
+                            "record {} was refused: {}",
+                            a.seq,
+                            a.error.as_deref().unwrap_or("")
+                        )));
+                    }
+                    break;
+                }
+                Err(ApiError::Busy { .. }) => {
+                    tokio::time::sleep(std::time::Duration::from_millis(50)).await
+                }
+                Err(e) => return Err(e),
+            }
+        }
+    }
+    crate::app::finish_run(state, dst, &live).await
+}
+
+/// `DELETE /v1/runs/{run}` (admin): a finished run and all its data.
+#[utoipa::path(delete, path = "/v1/runs/{run}", tag = "runs",
+    params(("run" = String, Path, description = "Run id")),
+    responses((status = 204, description = "Deleted"),
+              (status = 409, description = "The run is still active: end it first", body = crate::error::ErrorBody)))]
+pub async fn delete_run(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+    Path(run): Path<String>,
+) -> Result<StatusCode, ApiError> {
+    check_admin(&state, &headers)?;
+    if state.runs.read().await.contains_key(&run) {
+        return Err(ApiError::Conflict(format!(
+            "run {run} is active: end it first with POST /v1/runs/{run}/end"
+        )));
+    }
+    if state.store.delete_run(&run).await? {
+        tracing::info!(run = %run, "run deleted");
+        Ok(StatusCode::NO_CONTENT)
+    } else {
+        Err(ApiError::NotFound(format!("no run {run}")))
+    }
+}

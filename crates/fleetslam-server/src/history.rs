@@ -1,0 +1,403 @@
+//! What a run leaves behind and how it is read back: the snapshots the coordinator stores
+//! (filter, merge position and trajectories, so that a restart continues bit for bit), the
+//! final result, ground truth, the state at a chosen time (latest snapshot before it, then
+//! the stored log up to it), and exports in the files `fleetslam run` writes.
+
+use crate::coordinator::{LandmarkState, RobotStatus, RunState};
+use crate::error::ApiError;
+use crate::merge::OrderKey;
+use fleetslam_core::config::{EKF_UPDATER, FilterConfig};
+use fleetslam_core::filter::{FastSlam, Snapshot};
+use fleetslam_core::log::{Record, record_order};
+use fleetslam_core::pose::Pose2;
+use fleetslam_data::formats::{LandmarkRow, TrajectoryPoint, Truth};
+use fleetslam_store::{MAX_RECORDS_PAGE, Store, StoredObservation};
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+/// Per-robot trajectories as `[t, x, y, theta]`: the robot's estimated (weighted mean) pose
+/// at its start and after each of its records, exactly as `fleetslam run` records them.
+pub type Trajectories = BTreeMap<String, Vec<[f64; 4]>>;
+
+/// Artifact name of a finished run's result ([`RunResult`]).
+pub const RESULT: &str = "result";
+/// Artifact name of a run's ground truth ([`truth_to_json`]).
+pub const TRUTH: &str = "truth";
+
+/// A stored snapshot of a running run.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RunSnapshot {
+    pub filter: Snapshot,
+    /// Records applied.
+    pub applied: u64,
+    /// Key `(t, robot, seq)` of the last record applied: every stored record of a merged
+    /// robot ordered before or at it is in `filter`, every later one is not.
+    pub last: Option<(f64, String, u64)>,
+    pub trajectories: Trajectories,
+}
+
+impl RunSnapshot {
+    pub fn last_key(&self) -> Option<OrderKey> {
+        self.last
+            .as_ref()
+            .map(|(t, robot, seq)| OrderKey::new(*t, robot, *seq))
+    }
+
+    /// The time a snapshot is filed under: that of its last record, or before any time.
+    pub fn filed_t(&self) -> f64 {
+        self.last.as_ref().map_or(f64::MIN, |l| l.0)
+    }
+
+    pub fn encode(&self) -> Result<Vec<u8>, ApiError> {
+        serde_json::to_vec(self).map_err(ApiError::internal)
+    }
+
+    pub fn decode(data: &[u8]) -> Result<Self, ApiError> {
+        serde_json::from_slice(data).map_err(|e| {
+            ApiError::internal(anyhow::anyhow!("a stored snapshot is unreadable: {e}"))
+        })
+    }
+}
+
+/// Timing and counts of a run, for comparisons.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct RunMetrics {
+    pub applied: u64,
+    /// Data time of the earliest trajectory point (a start pose) [s].
+    pub t_start: Option<f64>,
+    pub step_ms_p50: f64,
+    pub step_ms_p95: f64,
+    pub step_ms_mean: f64,
+    pub landmark_updates: u64,
+    pub ns_per_landmark_update: f64,
+    pub updater: String,
+    pub particles: usize,
+    pub seed: u64,
+    pub resamples: u64,
+    pub landmarks: usize,
+    pub final_ess: f64,
+}
+
+/// What a run leaves when it ends: its final state, trajectories and metrics.
+#[derive(Debug, Clone, Serialize)]
+pub struct RunResult<'a> {
+    pub state: &'a RunState,
+    pub trajectories: &'a Trajectories,
+    pub metrics: &'a RunMetrics,
+}
+
+/// The mean pose of robot `i`, as a trajectory point at `t`.
+pub fn trajectory_point(filter: &FastSlam, i: usize, t: f64) -> [f64; 4] {
+    let p = filter.mean_pose(i);
+    [t, p.x, p.y, p.theta]
+}
+
+/// Trajectories and landmarks as the files `fleetslam run` writes.
+pub fn to_truth(traj: &Trajectories, landmarks: &[LandmarkRow]) -> Truth {
+    Truth {
+        trajectories: traj
+            .iter()
+            .map(|(r, pts)| {
+                let pts = pts
+                    .iter()
+                    .map(|p| TrajectoryPoint {
+                        t: p[0],
+                        pose: Pose2::new(p[1], p[2], p[3]),
+                    })
+                    .collect();
+                (r.clone(), pts)
+            })
+            .collect(),
+        landmarks: landmarks.to_vec(),
+    }
+}
+
+pub fn landmark_rows(ls: &[LandmarkState]) -> Vec<LandmarkRow> {
+    ls.iter()
+        .map(|l| LandmarkRow {
+            id: l.id,
+            mean: l.mean,
+            cov: l.cov,
+        })
+        .collect()
+}
+
+/// Ground truth (or an estimate) as JSON:
+/// `{"robots": {"<id>": [[t, x, y, theta], ...]}, "landmarks": [{"id", "x", "y", "z"}]}`.
+pub fn truth_to_json(t: &Truth) -> Value {
+    let robots: BTreeMap<&String, Vec<[f64; 4]>> = t
+        .trajectories
+        .iter()
+        .map(|(r, pts)| {
+            (
+                r,
+                pts.iter()
+                    .map(|p| [p.t, p.pose.x, p.pose.y, p.pose.theta])
+                    .collect(),
+            )
+        })
+        .collect();
+    let landmarks: Vec<Value> = t
+        .landmarks
+        .iter()
+        .map(|l| json!({"id": l.id, "x": l.mean[0], "y": l.mean[1], "z": l.mean[2]}))
+        .collect();
+    json!({ "robots": robots, "landmarks": landmarks })
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct TruthJson {
+    #[serde(default)]
+    robots: BTreeMap<String, Vec<[f64; 4]>>,
+    #[serde(default)]
+    landmarks: Vec<TruthLandmark>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct TruthLandmark {
+    id: Option<u32>,
+    x: f64,
+    y: f64,
+    #[serde(default)]
+    z: f64,
+}
+
+/// Parses [`truth_to_json`]'s format, refusing non-finite numbers.
+pub fn truth_from_json(body: &[u8]) -> Result<Truth, ApiError> {
+    let de = &mut serde_json::Deserializer::from_slice(body);
+    let t: TruthJson = serde_path_to_error::deserialize(de)
+        .map_err(|e| ApiError::BadRequest(format!("truth: field `{}`: {}", e.path(), e.inner())))?;
+    for (r, pts) in &t.robots {
+        if let Some(i) = pts.iter().position(|p| p.iter().any(|v| !v.is_finite())) {
+            return Err(ApiError::BadRequest(format!(
+                "truth: robot {r:?} point {i} has a non-finite number"
+            )));
+        }
+    }
+    if let Some(i) = t
+        .landmarks
+        .iter()
+        .position(|l| !(l.x.is_finite() && l.y.is_finite() && l.z.is_finite()))
+    {
+        return Err(ApiError::BadRequest(format!(
+            "truth: landmark {i} has a non-finite coordinate"
+        )));
+    }
+    Ok(Truth {
+        trajectories: t
+            .robots
+            .into_iter()
+            .map(|(r, pts)| {
+                let pts = pts
+                    .into_iter()
+                    .map(|p| TrajectoryPoint {
+                        t: p[0],
+                        pose: Pose2::new(p[1], p[2], p[3]),
+                    })
+                    .collect();
+                (r, pts)
+            })
+            .collect(),
+        landmarks: t
+            .landmarks
+            .into_iter()
+            .map(|l| LandmarkRow {
+                id: l.id,
+                mean: [l.x, l.y, l.z],
+                cov: [0.0; 6],
+            })
+            .collect(),
+    })
+}
+
+/// The landmark updater a configuration names. Only the EKF is built in; a learned model
+/// is refused with a message saying which updaters this server has.
+pub fn updater_check(config: &FilterConfig) -> Result<(), ApiError> {
+    if config.updater == EKF_UPDATER {
+        Ok(())
+    } else {
+        Err(ApiError::BadRequest(format!(
+            "config: field `updater`: unknown updater {:?}: this server has `ekf`",
+            config.updater
+        )))
+    }
+}
+
+/// A new filter for `config`.
+pub fn new_filter(config: &FilterConfig) -> Result<FastSlam, ApiError> {
+    updater_check(config)?;
+    FastSlam::new(config.clone()).map_err(|e| ApiError::BadRequest(format!("config: {e}")))
+}
+
+/// Restores a filter from a snapshot with the updater its configuration names.
+pub fn restore_filter(s: Snapshot) -> Result<FastSlam, ApiError> {
+    updater_check(&s.config)?;
+    let ekf = fleetslam_core::ekf::EkfUpdater::new(s.config.landmark_kind, &s.config.sensor_noise);
+    FastSlam::from_snapshot(s, Arc::new(ekf))
+        .map_err(|e| ApiError::internal(anyhow::anyhow!("restoring a snapshot: {e}")))
+}
+
+/// Every stored record of a run, in arrival order.
+pub async fn all_records(store: &Store, run: &str) -> Result<Vec<StoredObservation>, ApiError> {
+    let mut out = Vec::new();
+    let mut after = 0;
+    loop {
+        let page = store.records_after(run, after, MAX_RECORDS_PAGE).await?;
+        let Some(last) = page.last() else { break };
+        after = last.arrival;
+        let n = page.len();
+        out.extend(page);
+        if (n as i64) < MAX_RECORDS_PAGE {
+            break;
+        }
+    }
+    Ok(out)
+}
+
+/// Parses stored records (they were validated before they were stored).
+pub fn parse_records(obs: &[StoredObservation]) -> Result<Vec<Record>, ApiError> {
+    obs.iter()
+        .map(|o| {
+            serde_json::from_str::<Record>(&o.body).map_err(|e| {
+                ApiError::internal(anyhow::anyhow!(
+                    "stored record {} of robot {:?} is unreadable: {e}",
+                    o.seq,
+                    o.robot_id
+                ))
+            })
+        })
+        .collect()
+}
+
+/// The records a filter restored from `snap` still has to apply, in the merge order: those
+/// of robots in the filter ordered after the snapshot's last record, and, when `until` is
+/// given, not later than it.
+pub fn records_after_snapshot(
+    mut records: Vec<Record>,
+    filter: &FastSlam,
+    last: Option<&OrderKey>,
+    until: Option<f64>,
+) -> Vec<Record> {
+    records.retain(|r| {
+        filter.robot_index(&r.robot).is_some()
+            && last.is_none_or(|k| OrderKey::of(r) > *k)
+            && until.is_none_or(|u| r.t <= u)
+    });
+    records.sort_by(record_order);
+    records
+}
+
+/// The state of a run as of data time `t`: its latest snapshot at or before `t`, then its
+/// stored records up to `t`. Deterministic, so a scrubbed state equals what the live run
+/// showed after the same records.
+pub async fn state_at(
+    store: &Store,
+    run: &str,
+    status: &str,
+    t: f64,
+    particle_sample: usize,
+) -> Result<RunState, ApiError> {
+    let snap = store.snapshot_at_or_before(run, t).await?;
+    let Some(snap) = snap else {
+        return Err(ApiError::NotFound(format!(
+            "run {run} has no state at t={t}: it starts later (see GET /v1/runs/{run}/timeline)"
+        )));
+    };
+    let snap = RunSnapshot::decode(&snap.data)?;
+    let last = snap.last_key();
+    let mut applied = snap.applied;
+    let mut filter = restore_filter(snap.filter)?;
+    let mut trajectories = snap.trajectories;
+    let records = parse_records(&all_records(store, run).await?)?;
+    let todo = records_after_snapshot(records, &filter, last.as_ref(), Some(t));
+    let (filter, applied, applied_t) = tokio::task::spawn_blocking(move || {
+        let mut applied_t = last.as_ref().map(OrderKey::t);
+        for r in &todo {
+            let i = filter
+                .robot_index(&r.robot)
+                .expect("kept robots in the filter");
+            filter
+                .step(r)
+                .map_err(|e| ApiError::internal(anyhow::anyhow!("replaying: {e}")))?;
+            trajectories
+                .get_mut(&r.robot)
+                .map(|v| v.push(trajectory_point(&filter, i, r.t)));
+            applied += 1;
+            applied_t = Some(r.t);
+        }
+        Ok::<_, ApiError>((filter, applied, applied_t))
+    })
+    .await
+    .map_err(ApiError::internal)??;
+    let mut state = base_state(run, status, &filter, applied, applied_t, particle_sample);
+    state.t = Some(t);
+    Ok(state)
+}
+
+/// A run's state from its filter alone (robots as the filter knows them).
+pub fn base_state(
+    run: &str,
+    status: &str,
+    filter: &FastSlam,
+    applied: u64,
+    applied_t: Option<f64>,
+    particle_sample: usize,
+) -> RunState {
+    let est = filter.estimate();
+    let robots = est
+        .robots
+        .iter()
+        .map(|e| RobotStatus {
+            id: e.id.clone(),
+            mode: "mapping",
+            best: Some(e.best),
+            mean: Some(e.mean),
+            cov: Some(e.cov),
+            last_seq: None,
+            last_t: Some(e.last_t),
+            records: e.records,
+            gaps: 0,
+            queue_depth: 0,
+            lag_s: 0.0,
+        })
+        .collect();
+    let particle_sample = est
+        .robots
+        .iter()
+        .enumerate()
+        .map(|(i, r)| {
+            let v = filter
+                .particle_sample(i, particle_sample)
+                .into_iter()
+                .map(|(p, w)| [p.x, p.y, p.theta, w])
+                .collect();
+            (r.id.clone(), v)
+        })
+        .collect();
+    RunState {
+        run: run.to_string(),
+        status: status.to_string(),
+        applied,
+        t: applied_t,
+        ess: est.ess,
+        particles: est.particles,
+        resamples: filter.stats().resamples,
+        robots,
+        landmarks: est
+            .landmarks
+            .iter()
+            .map(|l| LandmarkState {
+                slot: l.slot,
+                id: l.id,
+                mean: l.gaussian.mean,
+                cov: l.gaussian.cov,
+            })
+            .collect(),
+        particle_sample,
+        step_ms: 0.0,
+    }
+}

@@ -1,0 +1,114 @@
+//! Recovery on start: every run the store still lists as active is loaded again from its
+//! latest snapshot, and the records stored after that snapshot go back into the merge, so
+//! the run continues exactly as if the server had never stopped (same records, same order,
+//! same random streams: the filter's randomness is a function of (seed, step, particle)).
+
+use crate::app::AppState;
+use crate::coordinator::Recovered;
+use crate::error::ApiError;
+use crate::history::{self, RunSnapshot, Trajectories};
+use fleetslam_core::config::FilterConfig;
+use fleetslam_core::pose::PoseGaussian;
+use fleetslam_store::RunRow;
+use std::collections::{BTreeMap, HashMap};
+use std::time::Instant;
+
+/// Recovers every active run; returns how many were recovered. A run that cannot be
+/// recovered is logged and left active in the store (its API answers say so).
+pub async fn recover(state: &AppState) -> Result<usize, ApiError> {
+    let mut n = 0;
+    for row in state.store.active_runs().await? {
+        let started = Instant::now();
+        match recover_run(state, &row).await {
+            Ok(pending) => {
+                n += 1;
+                tracing::info!(
+                    run = %row.id,
+                    records = row.records,
+                    replayed = pending,
+                    ms = started.elapsed().as_millis() as u64,
+                    "run recovered"
+                );
+            }
+            Err(e) => tracing::error!(run = %row.id, error = %e, "run could not be recovered"),
+        }
+    }
+    Ok(n)
+}
+
+/// Loads one run; returns how many records it has to apply again.
+async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> {
+    let store = &state.store;
+    let config: FilterConfig = serde_json::from_value(row.config.clone())
+        .map_err(|e| ApiError::internal(anyhow::anyhow!("stored config: {e}")))?;
+    let robots = store.robots(&row.id).await?;
+    let (mut filter, applied, last, mut trajectories) = match store.latest_snapshot(&row.id).await?
+    {
+        Some(s) => {
+            let snap = tokio::task::spawn_blocking(move || RunSnapshot::decode(&s.data))
+                .await
+                .map_err(ApiError::internal)??;
+            let last = snap.last_key();
+            let filter = history::restore_filter(snap.filter)?;
+            (filter, snap.applied, last, snap.trajectories)
+        }
+        None => (history::new_filter(&config)?, 0, None, Trajectories::new()),
+    };
+    // A robot stored but not in the latest snapshot was being registered when the server
+    // stopped (its registration was never answered): add it now.
+    for r in &robots {
+        if let (Some(start), None) = (&r.start, filter.robot_index(&r.robot_id)) {
+            let start: PoseGaussian = serde_json::from_value(start.clone())
+                .map_err(|e| ApiError::internal(anyhow::anyhow!("stored start pose: {e}")))?;
+            let t0 = r.t0.unwrap_or(0.0);
+            let i = filter
+                .add_robot(&r.robot_id, &start, t0)
+                .map_err(|e| ApiError::internal(anyhow::anyhow!("re-adding a robot: {e}")))?;
+            trajectories.insert(
+                r.robot_id.clone(),
+                vec![history::trajectory_point(&filter, i, t0)],
+            );
+        }
+    }
+    let stored = history::all_records(store, &row.id).await?;
+    let mut seqs: HashMap<&str, BTreeMap<u64, f64>> = HashMap::new();
+    for o in &stored {
+        seqs.entry(o.robot_id.as_str())
+            .or_default()
+            .insert(o.seq as u64, o.t);
+    }
+    let robot_states = robots
+        .iter()
+        .map(|r| {
+            (
+                r.robot_id.clone(),
+                r.t0.unwrap_or(0.0),
+                filter.robot_index(&r.robot_id).is_some(),
+                seqs.get(r.robot_id.as_str()).cloned().unwrap_or_default(),
+            )
+        })
+        .collect();
+    let records = history::parse_records(&stored)?;
+    let pending = history::records_after_snapshot(records, &filter, last.as_ref(), None);
+    let n = pending.len();
+    let tokens = robots
+        .iter()
+        .map(|r| (r.token_hash.clone(), r.robot_id.clone()))
+        .collect();
+    state
+        .insert_live(
+            row.id.clone(),
+            config,
+            filter,
+            Some(Recovered {
+                applied,
+                last,
+                trajectories,
+                robots: robot_states,
+                pending,
+            }),
+            tokens,
+        )
+        .await;
+    Ok(n)
+}

@@ -1,0 +1,151 @@
+//! Shared by the API tests: a router over a fresh SQLite store, called with `oneshot`.
+#![allow(dead_code)]
+
+use axum::body::Body;
+use axum::http::{Request, StatusCode, header};
+use fleetslam_core::log::Log;
+use fleetslam_data::sim::{SimConfig, simulate};
+use fleetslam_server::app::{ApiConfig, AppState, app};
+use fleetslam_store::Store;
+use serde_json::{Value, json};
+use tower::ServiceExt;
+
+pub struct Harness {
+    pub router: axum::Router,
+    pub store: Store,
+    pub dir: tempfile::TempDir,
+}
+
+pub async fn harness(config: ApiConfig) -> Harness {
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::open_default(dir.path()).await.unwrap();
+    Harness {
+        router: app(AppState::new(store.clone(), config)),
+        store,
+        dir,
+    }
+}
+
+impl Harness {
+    pub async fn call(
+        &self,
+        method: &str,
+        uri: &str,
+        token: Option<&str>,
+        content_type: &str,
+        body: Vec<u8>,
+    ) -> (StatusCode, Value) {
+        let mut req = Request::builder()
+            .method(method)
+            .uri(uri)
+            .header(header::CONTENT_TYPE, content_type);
+        if let Some(t) = token {
+            req = req.header(header::AUTHORIZATION, format!("Bearer {t}"));
+        }
+        let resp = self
+            .router
+            .clone()
+            .oneshot(req.body(Body::from(body)).unwrap())
+            .await
+            .unwrap();
+        let status = resp.status();
+        let bytes = axum::body::to_bytes(resp.into_body(), usize::MAX)
+            .await
+            .unwrap();
+        let v = serde_json::from_slice(&bytes)
+            .unwrap_or(Value::String(String::from_utf8_lossy(&bytes).into()));
+        (status, v)
+    }
+
+    pub async fn json(
+        &self,
+        method: &str,
+        uri: &str,
+        token: Option<&str>,
+        body: Value,
+    ) -> (StatusCode, Value) {
+        self.call(
+            method,
+            uri,
+            token,
+            "application/json",
+            serde_json::to_vec(&body).unwrap(),
+        )
+        .await
+    }
+
+    /// The status and raw body of a bodiless request.
+    pub async fn raw(&self, method: &str, uri: &str) -> (StatusCode, Vec<u8>) {
+        let req = Request::builder()
+            .method(method)
+            .uri(uri)
+            .body(Body::empty())
+            .unwrap();
+        let resp = self.router.clone().oneshot(req).await.unwrap();
+        let status = resp.status();
+        let bytes = axum::body::to_bytes(resp.into_body(), usize::MAX)
+            .await
+            .unwrap();
+        (status, bytes.to_vec())
+    }
+
+    pub async fn get(&self, uri: &str) -> (StatusCode, Value) {
+        self.call("GET", uri, None, "application/json", Vec::new())
+            .await
+    }
+
+    /// The run's state once `ready` holds (states are published at a bounded rate).
+    pub async fn state_when(&self, run: &str, ready: impl Fn(&Value) -> bool) -> Value {
+        let uri = format!("/v1/runs/{run}/state");
+        for _ in 0..200 {
+            let (_, v) = self.get(&uri).await;
+            if ready(&v) {
+                return v;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        }
+        panic!("state never became ready: {}", self.get(&uri).await.1);
+    }
+}
+
+pub fn sim_log(robots: usize, duration: f64) -> Log {
+    let mut log = simulate(&SimConfig {
+        robots,
+        duration,
+        seed: 5,
+        ..SimConfig::default()
+    })
+    .unwrap()
+    .log;
+    log.sort();
+    log
+}
+
+/// Creates a run from the log's header and registers its robots; returns (run, tokens).
+pub async fn setup(h: &Harness, log: &Log, config: Value) -> (String, Vec<(String, String)>) {
+    let (s, v) = h
+        .json(
+            "POST",
+            "/v1/runs",
+            None,
+            json!({"name": "t", "header": log.header, "config": config}),
+        )
+        .await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let run = v["id"].as_str().unwrap().to_string();
+    let mut tokens = Vec::new();
+    for r in &log.header.robots {
+        let (s, v) = h
+            .json(
+                "POST",
+                &format!("/v1/runs/{run}/robots"),
+                None,
+                json!({"id": r.id, "start": r.start, "t0": r.t0}),
+            )
+            .await;
+        assert_eq!(s, StatusCode::CREATED, "{v}");
+        assert_eq!(v["mode"], "mapping");
+        tokens.push((r.id.clone(), v["token"].as_str().unwrap().to_string()));
+    }
+    (run, tokens)
+}

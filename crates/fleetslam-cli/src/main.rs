@@ -15,6 +15,7 @@ use fleetslam_data::sim::{SimConfig, simulate};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 
+mod history;
 mod replay;
 
 #[derive(Debug, Parser)]
@@ -43,6 +44,12 @@ enum Command {
     Replay(ReplayArgs),
     /// The main job: a server with simulated robots posting to it over HTTP.
     Demo(DemoArgs),
+    /// List stored runs with their summaries.
+    Runs(history::RunsArgs),
+    /// Write a run's trajectories (TUM), landmarks (CSV), metrics and log into a directory.
+    Export(history::ExportArgs),
+    /// Delete a run and all its data.
+    Delete(history::DeleteArgs),
 }
 
 #[derive(Debug, Args)]
@@ -90,6 +97,10 @@ struct ReplayArgs {
     /// Leave the run open when the log is done (default: end it if the replay created it).
     #[arg(long)]
     keep_open: bool,
+    /// A ground-truth directory (as `import` and `simulate` write) to upload with the run,
+    /// for the dashboard's overlay and GET /v1/runs/{id}/evaluation.
+    #[arg(long)]
+    truth: Option<PathBuf>,
 }
 
 #[derive(Debug, Args)]
@@ -244,6 +255,9 @@ fn main() -> Result<()> {
         Command::Serve(a) => runtime()?.block_on(cmd_serve(a)),
         Command::Replay(a) => runtime()?.block_on(cmd_replay(a)),
         Command::Demo(a) => runtime()?.block_on(cmd_demo(a)),
+        Command::Runs(a) => runtime()?.block_on(history::cmd_runs(a)),
+        Command::Export(a) => runtime()?.block_on(history::cmd_export(a)),
+        Command::Delete(a) => runtime()?.block_on(history::cmd_delete(a)),
     }
 }
 
@@ -522,6 +536,11 @@ async fn cmd_replay(a: ReplayArgs) -> Result<()> {
     let o = replay_options(&a)?;
     let (run, tokens) = replay::setup(&log, &o).await?;
     println!("run {run}");
+    if let Some(dir) = &a.truth {
+        let truth = fleetslam_data::formats::Truth::read_dir(dir)
+            .with_context(|| format!("reading ground truth from {}", dir.display()))?;
+        replay::put_truth(&o, &run, &truth).await?;
+    }
     let summary = replay::play(&log, &run, tokens, &o).await?;
     if a.run.is_none() && !a.keep_open {
         end_run(&a.server, &run, a.admin_token.as_deref()).await?;
@@ -563,9 +582,11 @@ async fn cmd_demo(a: DemoArgs) -> Result<()> {
                 progress: false,
             };
             let (run, tokens) = replay::setup(&sim.log, &o).await?;
+            replay::put_truth(&o, &run, &sim.truth).await?;
             println!("run {run}: {} simulated robots posting over HTTP", a.robots);
-            println!("  state: {server}/v1/runs/{run}/state");
-            println!("  live:  ws://{}/v1/runs/{run}/live", running.addr);
+            println!("  dashboard: {server}/#/run/{run}");
+            println!("  state:     {server}/v1/runs/{run}/state");
+            println!("  live:      ws://{}/v1/runs/{run}/live", running.addr);
             let summary = replay::play(&sim.log, &run, tokens, &o).await?;
             end_run(&server, &run, None).await?;
             println!("{summary}");

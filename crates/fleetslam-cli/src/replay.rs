@@ -104,6 +104,29 @@ async fn post_json(
     Ok(v)
 }
 
+/// Uploads a run's ground truth (`PUT /v1/runs/{run}/truth`).
+pub async fn put_truth(
+    o: &ReplayOptions,
+    run: &str,
+    truth: &fleetslam_data::formats::Truth,
+) -> Result<()> {
+    let c = client()?;
+    let url = format!("{}/v1/runs/{run}/truth", o.server.trim_end_matches('/'));
+    let mut req = c
+        .put(&url)
+        .json(&fleetslam_server::history::truth_to_json(truth));
+    if let Some(t) = &o.admin_token {
+        req = req.bearer_auth(t);
+    }
+    let resp = req.send().await.with_context(|| format!("PUT {url}"))?;
+    if !resp.status().is_success() {
+        let status = resp.status();
+        let v: Value = resp.json().await.unwrap_or(Value::Null);
+        anyhow::bail!("PUT {url}: {status}: {}", v["message"]);
+    }
+    Ok(())
+}
+
 /// Creates (or joins) the run and registers the log's robots; returns run id and tokens.
 pub async fn setup(log: &Log, o: &ReplayOptions) -> Result<(String, Vec<(String, String)>)> {
     let c = client()?;

@@ -96,7 +96,8 @@ impl ServerConfig {
         }
         for key in ENV_KEYS {
             let name = format!("FLEETSLAM_{}", key.to_uppercase());
-            if let Some(raw) = env(&name) {
+            // An empty variable is unset (compose files pass `${VAR:-}` through).
+            if let Some(raw) = env(&name).filter(|v| !v.is_empty()) {
                 let default_is_string = matches!(
                     key,
                     "bind" | "data_dir" | "database_url" | "admin_token" | "web_dir"
@@ -168,6 +169,9 @@ mod tests {
         assert_eq!(c.bind, "0.0.0.0:9000");
         assert_eq!(c.queue_capacity, 16);
         assert_eq!(c.state_rate_hz, 10.0);
+        let c =
+            ServerConfig::load(None, |k| (k == "FLEETSLAM_ADMIN_TOKEN").then(String::new)).unwrap();
+        assert_eq!(c.admin_token, None, "an empty variable is unset");
     }
 
     #[test]

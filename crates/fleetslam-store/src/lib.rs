@@ -41,6 +41,7 @@
 
 #![warn(missing_docs)]
 
+pub mod admin;
 mod error;
 mod pool;
 mod types;

@@ -31,23 +31,6 @@ where
     store.close().await;
 }
 
-/// The URL of database `name` on the server of `url`.
-fn with_database(url: &str, name: &str) -> String {
-    let (base, query) = match url.split_once('?') {
-        Some((base, query)) => (base, Some(query)),
-        None => (url, None),
-    };
-    let host_start = base.find("://").map_or(0, |i| i + 3);
-    let base = match base[host_start..].find('/') {
-        Some(slash) => &base[..host_start + slash],
-        None => base,
-    };
-    match query {
-        Some(q) => format!("{base}/{name}?{q}"),
-        None => format!("{base}/{name}"),
-    }
-}
-
 /// Runs `test` on a store in a fresh PostgreSQL database, dropped afterwards (also when the
 /// test fails); skipped, saying so, when no server is configured.
 async fn with_postgres<F, Fut>(test: F)
@@ -78,7 +61,7 @@ where
         .execute(&mut admin)
         .await
         .expect("create the test database");
-    let store = Store::open(&with_database(&url, &name))
+    let store = Store::open(&fleetslam_store::admin::with_database(&url, &name))
         .await
         .expect("open PostgreSQL store");
     assert_eq!(store.backend(), "postgres");
@@ -960,12 +943,15 @@ async fn open_refuses_unknown_urls() {
 #[test]
 fn database_urls_are_rewritten() {
     assert_eq!(
-        with_database("postgres://postgres@127.0.0.1:5432/test", "x"),
+        fleetslam_store::admin::with_database("postgres://postgres@127.0.0.1:5432/test", "x"),
         "postgres://postgres@127.0.0.1:5432/x"
     );
     assert_eq!(
-        with_database("postgres://h/test?sslmode=disable", "x"),
+        fleetslam_store::admin::with_database("postgres://h/test?sslmode=disable", "x"),
         "postgres://h/x?sslmode=disable"
     );
-    assert_eq!(with_database("postgres://h", "x"), "postgres://h/x");
+    assert_eq!(
+        fleetslam_store::admin::with_database("postgres://h", "x"),
+        "postgres://h/x"
+    );
 }

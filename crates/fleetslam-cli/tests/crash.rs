@@ -1,0 +1,240 @@
+//! The server is killed hard (SIGKILL) in the middle of a multi-robot replay and started
+//! again on the same store; the replay client resumes (it re-sends what was not
+//! acknowledged). Every record is then stored exactly once and the run's result equals an
+//! uninterrupted offline run's, bit for bit. On SQLite always, on PostgreSQL when
+//! FLEETSLAM_TEST_POSTGRES_URL is set.
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+const BIN: &str = env!("CARGO_BIN_EXE_fleetslam");
+
+struct Proc(Child);
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// `fleetslam serve` on `port` with `store` args; returns once it listens.
+fn serve(port: u16, store: &[String]) -> Proc {
+    let mut child = Command::new(BIN)
+        .args(["serve", "--bind", &format!("127.0.0.1:{port}")])
+        .args(store)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    assert!(
+        line.contains("serving"),
+        "the server did not start: {line:?}"
+    );
+    Proc(child)
+}
+
+fn get_json(rt: &tokio::runtime::Runtime, url: &str) -> serde_json::Value {
+    rt.block_on(async {
+        match reqwest::get(url).await {
+            Ok(r) => r.json().await.unwrap_or(serde_json::Value::Null),
+            Err(_) => serde_json::Value::Null,
+        }
+    })
+}
+
+fn run_ok(args: &[&str]) -> String {
+    let out = Command::new(BIN).args(args).output().unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "fleetslam {args:?}: {stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    stdout
+}
+
+fn crash_and_resume(dir: &Path, store: &[String]) {
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let sim = dir.join("sim");
+    run_ok(&[
+        "simulate",
+        "--robots",
+        "3",
+        "--duration",
+        "40",
+        "--seed",
+        "4",
+        "--out",
+        sim.to_str().unwrap(),
+    ]);
+    let log = sim.join("log.ndjson");
+    let records = std::fs::read_to_string(&log).unwrap().lines().count() - 1;
+    let port = free_port();
+    let url = format!("http://127.0.0.1:{port}");
+    let mut server = serve(port, store);
+
+    // The robots post in real time, 8x faster: the replay takes ~5 s.
+    let mut replay = Command::new(BIN)
+        .args(["replay", log.to_str().unwrap(), "--server", &url])
+        .args([
+            "--speed",
+            "8",
+            "--batch",
+            "5",
+            "--particles",
+            "50",
+            "--seed",
+            "5",
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut out = BufReader::new(replay.stdout.take().unwrap());
+    let mut line = String::new();
+    out.read_line(&mut line).unwrap();
+    let run = line
+        .strip_prefix("run ")
+        .unwrap_or_else(|| panic!("no run id in {line:?}"))
+        .trim()
+        .to_string();
+
+    // Kill the server once a quarter of the records are in.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let st = get_json(&rt, &format!("{url}/v1/runs/{run}/state"));
+        if st["applied"].as_u64().unwrap_or(0) as usize > records / 4 {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the replay never got going: {st}"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    server.0.kill().unwrap(); // SIGKILL
+    server.0.wait().unwrap();
+    std::thread::sleep(Duration::from_millis(500));
+    let _server = serve(port, store);
+
+    // The client resumes by itself; it ends the run when its log is done.
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let status = loop {
+        if let Some(s) = replay.try_wait().unwrap() {
+            break s;
+        }
+        assert!(Instant::now() < deadline, "the replay did not finish");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let mut rest = String::new();
+    std::io::Read::read_to_string(&mut out, &mut rest).unwrap();
+    assert!(status.success(), "replay failed: {rest}");
+    assert!(
+        rest.contains(&format!("{records} records sent, {records} acknowledged")),
+        "{rest}"
+    );
+    assert!(
+        !rest.contains(", 0 retried"),
+        "the client never had to retry: {rest}"
+    );
+
+    // Every record exactly once; the result equals the uninterrupted offline run.
+    let exported = dir.join("exported");
+    run_ok(&[
+        "export",
+        &run,
+        "--server",
+        &url,
+        "--out",
+        exported.to_str().unwrap(),
+    ]);
+    let stored = std::fs::read_to_string(exported.join("log.ndjson")).unwrap();
+    let mut keys: Vec<(String, u64)> = stored
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let v: serde_json::Value = serde_json::from_str(l).unwrap();
+            (
+                v["robot"].as_str().unwrap().to_string(),
+                v["seq"].as_u64().unwrap(),
+            )
+        })
+        .collect();
+    assert_eq!(keys.len(), records);
+    keys.sort();
+    keys.dedup();
+    assert_eq!(keys.len(), records, "a record is stored twice");
+    let offline = dir.join("offline");
+    run_ok(&[
+        "run",
+        log.to_str().unwrap(),
+        "--particles",
+        "50",
+        "--seed",
+        "5",
+        "--out",
+        offline.to_str().unwrap(),
+    ]);
+    let mut compared = 0;
+    for entry in std::fs::read_dir(&offline).unwrap() {
+        let name = entry.unwrap().file_name().to_string_lossy().into_owned();
+        if name.ends_with(".tum") || name == "landmarks.csv" {
+            let want = std::fs::read_to_string(offline.join(&name)).unwrap();
+            let got = std::fs::read_to_string(exported.join(&name)).unwrap();
+            assert!(want == got, "{name} differs from the uninterrupted run");
+            compared += 1;
+        }
+    }
+    assert_eq!(compared, 4, "3 trajectories and the landmarks");
+}
+
+#[test]
+fn sigkill_mid_replay_sqlite() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    crash_and_resume(
+        dir.path(),
+        &["--data-dir".into(), data.to_str().unwrap().into()],
+    );
+}
+
+#[test]
+fn sigkill_mid_replay_postgres() {
+    let Ok(url) = std::env::var("FLEETSLAM_TEST_POSTGRES_URL") else {
+        eprintln!(
+            "PostgreSQL skipped: set FLEETSLAM_TEST_POSTGRES_URL to run this test against it"
+        );
+        return;
+    };
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let name = format!("fleetslam_crash_{}", std::process::id());
+    let db = rt
+        .block_on(fleetslam_store::admin::create_postgres_database(
+            &url, &name,
+        ))
+        .unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let outcome = std::panic::catch_unwind(|| {
+        crash_and_resume(dir.path(), &["--database-url".into(), db.clone()]);
+    });
+    rt.block_on(fleetslam_store::admin::drop_postgres_database(&url, &name))
+        .unwrap();
+    if let Err(e) = outcome {
+        std::panic::resume_unwind(e);
+    }
+}

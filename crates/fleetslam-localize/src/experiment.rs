@@ -606,6 +606,76 @@ pub fn speedups(sums: &[Summary]) -> Vec<(usize, f64, f64, f64)> {
     out
 }
 
+/// A markdown table: per window size, each policy's mean localization time ± 95% CI
+/// (localized runs / runs), and RTPF's speedup over skip; the baseline in the first row.
+pub fn markdown_table(sums: &[Summary], end_time: f64) -> String {
+    let mut policies: Vec<String> = Vec::new();
+    for s in sums.iter().filter(|s| s.policy != "baseline") {
+        if !policies.contains(&s.policy) {
+            policies.push(s.policy.clone());
+        }
+    }
+    let cell = |s: &Summary| {
+        format!(
+            "{:.1} ± {:.1} ({}/{})",
+            s.time_mean, s.time_ci95, s.localized, s.runs
+        )
+    };
+    let mut out = String::new();
+    let _ = write!(out, "| window |");
+    for p in &policies {
+        let _ = write!(out, " {p} [s] |");
+    }
+    let _ = writeln!(out, " rtpf speedup over skip |");
+    let _ = write!(out, "|---|");
+    for _ in &policies {
+        let _ = write!(out, "---|");
+    }
+    let _ = writeln!(out, "---|");
+    if let Some(b) = sums.iter().find(|s| s.policy == "baseline") {
+        let _ = writeln!(
+            out,
+            "| baseline (every record, full budget) | {} |{} |",
+            cell(b),
+            " |".repeat(policies.len())
+        );
+    }
+    let speed = speedups(sums);
+    let mut windows: Vec<usize> = sums
+        .iter()
+        .filter(|s| s.policy != "baseline")
+        .map(|s| s.window)
+        .collect();
+    windows.sort_unstable();
+    windows.dedup();
+    for k in windows {
+        let _ = write!(out, "| {k} |");
+        for p in &policies {
+            match sums.iter().find(|s| &s.policy == p && s.window == k) {
+                Some(s) => {
+                    let _ = write!(out, " {} |", cell(s));
+                }
+                None => {
+                    let _ = write!(out, " |");
+                }
+            }
+        }
+        match speed.iter().find(|s| s.0 == k) {
+            Some(s) => {
+                let _ = writeln!(out, " {:.2}x |", s.3);
+            }
+            None => {
+                let _ = writeln!(out, " |");
+            }
+        }
+    }
+    let _ = writeln!(
+        out,
+        "\nTimes in seconds of data (one record per second); a run that never localized counts as {end_time:.0} s."
+    );
+    out
+}
+
 /// DejaVu Sans, compiled in so that plotting needs no system fonts (its licence is in
 /// `assets/DejaVuSans-LICENSE.txt`).
 static FONT: &[u8] = include_bytes!("../assets/DejaVuSans.ttf");

@@ -242,6 +242,12 @@ impl LocalizeConfig {
             return Err("min_landmarks must be at least 1".into());
         }
         let l = &self.likelihood;
+        if !(l.noise_scale.is_finite() && l.noise_scale > 0.0) {
+            return Err(format!(
+                "likelihood.noise_scale must be a finite number > 0, got {}",
+                l.noise_scale
+            ));
+        }
         if !(l.outlier_mahalanobis2.is_finite() && l.outlier_mahalanobis2 > 0.0) {
             return Err(format!(
                 "likelihood.outlier_mahalanobis2 must be a finite number > 0, got {}",

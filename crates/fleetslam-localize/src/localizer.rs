@@ -646,8 +646,13 @@ impl Localizer {
                         true,
                     );
                     gradient_evals = (m * observing) as u64;
-                    let ends: Vec<[f64; 2]> = traj.poses.iter().map(|p| [p.x, p.y]).collect();
-                    let groups = group_by_grid(&ends, self.config.rtpf.group_cell);
+                    let ends: Vec<[f64; 3]> =
+                        traj.poses.iter().map(|p| [p.x, p.y, p.theta]).collect();
+                    let groups = group_by_grid(
+                        &ends,
+                        self.config.rtpf.group_cell,
+                        self.config.rtpf.group_cell_theta,
+                    );
                     let beliefs = grouped_beliefs(&traj.per_record, &groups);
                     optimise_weights(&beliefs, &self.config.rtpf)
                 } else {

@@ -138,6 +138,13 @@ pub struct LikelihoodParams {
     /// Use the ids observations carry (when the map has them). Default true. False treats
     /// every observation as anonymous (maximum-likelihood association).
     pub use_ids: bool,
+    /// Factor on the sensor noise's standard deviations. Default 2.0. A particle filter
+    /// represents a peaked likelihood poorly: with samples spread over a whole map, few or
+    /// none fall inside a narrow likelihood peak, and the filter can settle on a wrong pose.
+    /// Overestimating the noise smooths the likelihood (Thrun, Burgard, Fox, Probabilistic
+    /// Robotics, section 6.3, and the Monte Carlo localization notes). 1 uses the run's
+    /// noise as is.
+    pub noise_scale: f64,
     /// Squared Mahalanobis distance at which a reading's likelihood stops falling (it is
     /// floored at the sensor-noise Gaussian's value there). Default 16 (4 sigma). Lower
     /// tolerates more unexplained readings and localizes more slowly; higher trusts the
@@ -149,6 +156,7 @@ impl Default for LikelihoodParams {
     fn default() -> Self {
         Self {
             use_ids: true,
+            noise_scale: 2.0,
             outlier_mahalanobis2: 16.0,
         }
     }
@@ -173,10 +181,11 @@ pub struct ResolvedObs {
 
 impl<'a> Scorer<'a> {
     pub fn new(map: &'a LandmarkSet, noise: &SensorNoise, params: LikelihoodParams) -> Self {
+        let s2 = params.noise_scale * params.noise_scale;
         Self {
             map,
-            q2: noise.q2(),
-            q3: noise.q3(),
+            q2: noise.q2() * s2,
+            q3: noise.q3() * s2,
             params,
         }
     }
@@ -311,7 +320,11 @@ mod tests {
     #[test]
     fn likelihood_peaks_at_the_true_pose_and_integrates_landmark_covariance() {
         let map = one(LandmarkKind::RangeBearing2d, [2.0, 0.0, 0.0]);
-        let s = Scorer::new(&map, &SensorNoise::default(), LikelihoodParams::default());
+        let exact = LikelihoodParams {
+            noise_scale: 1.0,
+            ..Default::default()
+        };
+        let s = Scorer::new(&map, &SensorNoise::default(), exact);
         let obs = [LandmarkObservation {
             id: Some(4),
             z: vec![2.0, 0.0],
@@ -326,7 +339,7 @@ mod tests {
         // A vaguer landmark gives a flatter likelihood: lower peak, higher tail.
         let mut vague = map.clone();
         vague.landmarks[0].gaussian.cov = [1.0, 0.0, 0.0, 1.0, 0.0, 1.0];
-        let sv = Scorer::new(&vague, &SensorNoise::default(), LikelihoodParams::default());
+        let sv = Scorer::new(&vague, &SensorNoise::default(), exact);
         assert!(sv.record_ll(&Pose2::default(), &r) < at);
         assert!(sv.record_ll(&Pose2::new(1.0, 0.0, 0.0), &r) > off);
     }

@@ -39,9 +39,13 @@ pub struct RtpfParams {
     /// Trajectories for the gradient estimate; 0 picks `budget / (10 k)` (at least 20), so
     /// that evaluating `k` likelihoods per trajectory costs about a tenth of the update.
     pub trajectories: usize,
-    /// Cell size of the grouping grid [m]. Default 1.0. Larger cells make fewer, larger
-    /// groups: smoother and more biased gradients.
+    /// Cell size of the grouping grid in x and y [m]. Default 0.5. Larger cells make fewer,
+    /// larger groups: smoother and more biased gradients. A belief spread over the whole
+    /// map with many trajectories fills the grid and makes one group (no gradient): keep
+    /// the trajectories sparse.
     pub group_cell: f64,
+    /// Cell size of the grouping grid in heading [rad]. Default 30° (0.5236).
+    pub group_cell_theta: f64,
 }
 
 impl Default for RtpfParams {
@@ -50,7 +54,8 @@ impl Default for RtpfParams {
             gradient_steps: 5,
             step_size: 0.2,
             trajectories: 0,
-            group_cell: 1.0,
+            group_cell: 0.5,
+            group_cell_theta: 30f64.to_radians(),
         }
     }
 }
@@ -61,6 +66,12 @@ impl RtpfParams {
             return Err(format!(
                 "rtpf.step_size must be a finite number > 0, got {}",
                 self.step_size
+            ));
+        }
+        if !(self.group_cell_theta.is_finite() && self.group_cell_theta > 0.0) {
+            return Err(format!(
+                "rtpf.group_cell_theta must be a finite angle > 0 [rad], got {}",
+                self.group_cell_theta
             ));
         }
         if !(self.group_cell.is_finite() && self.group_cell > 0.0) {
@@ -88,15 +99,24 @@ impl RtpfParams {
     }
 }
 
-/// Groups points by the connected regions (8-neighbourhood) of occupied cells of a grid with
-/// cells of `cell` metres: returns the group of each point, groups numbered from 0 in order
-/// of first appearance.
-pub fn group_by_grid(points: &[[f64; 2]], cell: f64) -> Vec<usize> {
-    let key = |p: &[f64; 2]| ((p[0] / cell).floor() as i64, (p[1] / cell).floor() as i64);
+/// Groups poses by the connected regions of occupied cells of a grid over the state space
+/// (x, y and heading; cells of `cell` metres and `cell_theta` radians, the heading axis
+/// wrapping around), two cells being neighbours when they differ by at most one in every
+/// axis. Returns the group of each pose, groups numbered from 0 in order of first
+/// appearance.
+pub fn group_by_grid(poses: &[[f64; 3]], cell: f64, cell_theta: f64) -> Vec<usize> {
+    let nth = ((2.0 * std::f64::consts::PI / cell_theta).floor() as i64).max(1);
+    let key = |p: &[f64; 3]| {
+        (
+            (p[0] / cell).floor() as i64,
+            (p[1] / cell).floor() as i64,
+            (((p[2] + std::f64::consts::PI) / cell_theta).floor() as i64).rem_euclid(nth),
+        )
+    };
     // Occupied cells in order of first appearance.
-    let mut cells: HashMap<(i64, i64), usize> = HashMap::new();
-    let mut order: Vec<(i64, i64)> = Vec::new();
-    for p in points {
+    let mut cells: HashMap<(i64, i64, i64), usize> = HashMap::new();
+    let mut order: Vec<(i64, i64, i64)> = Vec::new();
+    for p in poses {
         let c = key(p);
         if !cells.contains_key(&c) {
             cells.insert(c, order.len());
@@ -112,13 +132,16 @@ pub fn group_by_grid(points: &[[f64; 2]], cell: f64) -> Vec<usize> {
         }
         i
     }
-    for (i, &(cx, cy)) in order.iter().enumerate() {
+    for (i, &(cx, cy, ct)) in order.iter().enumerate() {
         for dx in -1..=1 {
             for dy in -1..=1 {
-                if let Some(&j) = cells.get(&(cx + dx, cy + dy)) {
-                    let (a, b) = (find(&mut parent, i), find(&mut parent, j));
-                    if a != b {
-                        parent[a.max(b)] = a.min(b);
+                for dt in -1..=1 {
+                    let n = (cx + dx, cy + dy, (ct + dt).rem_euclid(nth));
+                    if let Some(&j) = cells.get(&n) {
+                        let (a, b) = (find(&mut parent, i), find(&mut parent, j));
+                        if a != b {
+                            parent[a.max(b)] = a.min(b);
+                        }
                     }
                 }
             }
@@ -131,7 +154,7 @@ pub fn group_by_grid(points: &[[f64; 2]], cell: f64) -> Vec<usize> {
         let next = label.len();
         *g = *label.entry(root).or_insert(next);
     }
-    points.iter().map(|p| cell_group[cells[&key(p)]]).collect()
+    poses.iter().map(|p| cell_group[cells[&key(p)]]).collect()
 }
 
 /// The per-group masses of the component beliefs and of the full belief.
@@ -269,9 +292,21 @@ mod tests {
 
     #[test]
     fn grid_groups_are_connected_regions() {
-        let pts = [[0.1, 0.1], [1.2, 0.3], [5.0, 5.0], [0.5, 0.9], [5.5, 6.5], [9.0, 0.0]];
-        let g = group_by_grid(&pts, 1.0);
-        assert_eq!(g, vec![0, 0, 1, 0, 1, 2]);
+        let pts = [
+            [0.1, 0.1, 0.0],
+            [1.2, 0.3, 0.1],
+            [5.0, 5.0, 0.0],
+            [0.5, 0.9, 0.0],
+            [5.5, 6.5, 0.0],
+            [9.0, 0.0, 0.0],
+            // Same place, opposite heading: another group.
+            [0.2, 0.2, 3.0],
+            // Headings wrap: -3.1 and 3.1 are neighbours.
+            [9.0, 0.1, -3.1],
+            [9.0, 0.1, 3.1],
+        ];
+        let g = group_by_grid(&pts, 1.0, 0.5);
+        assert_eq!(g, vec![0, 0, 1, 0, 1, 2, 3, 4, 4]);
     }
 
     #[test]

@@ -182,6 +182,12 @@ pub struct LocalizeConfig {
     pub min_landmarks: usize,
     pub likelihood: LikelihoodParams,
     pub convergence: ConvergenceParams,
+    /// A one-record (or `skip`) update keeps the weighted samples without resampling while
+    /// their effective sample size stays at or above this fraction of the samples and the
+    /// budget is unchanged. Default 0.5. Resampling at every update makes the modes of a
+    /// multi-modal belief (a symmetric map) die out at random; 1.0 resamples always. The
+    /// mixture policies always draw their sample sets anew.
+    pub resample_threshold: f64,
     /// Policy for windows of more than one record. Default `rtpf`.
     pub policy: Policy,
     /// Window size rule. Default one record per update.
@@ -198,6 +204,7 @@ impl Default for LocalizeConfig {
             min_landmarks: 3,
             likelihood: LikelihoodParams::default(),
             convergence: ConvergenceParams::default(),
+            resample_threshold: 0.5,
             policy: Policy::default(),
             window: Window::default(),
             rtpf: RtpfParams::default(),
@@ -236,6 +243,13 @@ impl LocalizeConfig {
             return Err(format!(
                 "init_margin must be a finite length >= 0 [m], got {}",
                 self.init_margin
+            ));
+        }
+        if !(self.resample_threshold.is_finite() && (0.0..=1.0).contains(&self.resample_threshold))
+        {
+            return Err(format!(
+                "resample_threshold must be a fraction between 0 and 1, got {}",
+                self.resample_threshold
             ));
         }
         if self.min_landmarks == 0 {

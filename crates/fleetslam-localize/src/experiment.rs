@@ -1,15 +1,18 @@
 //! The experiment of the real-time particle filter paper (Kwok, Fox, Meila, section 4),
 //! reproduced in simulation: `fleetslam experiment rtpf`.
 //!
-//! **World.** A rectangular corridor loop ([`LoopWorld`]) lined on both sides with identical
-//! posts at a regular spacing, so that the map is symmetric (a half turn of the loop maps it
-//! onto itself) and periodic along each side; a few extra posts at unique places are the
-//! only distinguishing features. Observations carry no ids (association by maximum
-//! likelihood), so a post tells the robot little more than that it is beside some post.
+//! **World.** A rectangular corridor loop ([`LoopWorld`]) lined with identical posts at
+//! irregular places along one half of the loop, repeated on the other half turned by half a
+//! turn: the map is symmetric, every view recurs once, and a few extra posts at unique places
+//! are the only distinguishing features. Observations carry no ids (association by maximum
+//! likelihood), as the paper's robot saw only distances to walls.
 //!
 //! **Robot.** It drives around the loop from a random place (one per seed) at 0.5 m per
 //! record (one record per second), reports noisy odometry, and sees the posts within a few
 //! metres in front of it with range-bearing noise.
+//!
+//! **Prior.** Uniform along the corridor, facing along it in either direction
+//! ([`RtpfExperiment::corridor_prior`]): the free space of the paper's map is its corridors.
 //!
 //! **Policies.** With a fixed sample budget `N` per update, a window of `k` records per
 //! update: `skip`, `naive`, `uniform` and `rtpf` ([`crate::config::Policy`]), and the
@@ -27,6 +30,7 @@ use crate::config::{LocalizeConfig, Models, Policy, Window};
 use crate::error::LocalizeError;
 use crate::localizer::Localizer;
 use crate::map::{LandmarkSet, LikelihoodParams, MapLandmark};
+use crate::rtpf::RtpfParams;
 use fleetslam_core::log::{LandmarkObservation, Record};
 use fleetslam_core::motion::{AckermannParams, Motion, MotionModel, MotionNoise};
 use fleetslam_core::pose::{Pose2, wrap_angle};
@@ -49,8 +53,7 @@ pub struct LoopWorld {
     pub length: f64,
     /// Length of the short sides [m]. Default 12.
     pub width: f64,
-    /// Spacing of the posts along each wall [m]. Default 3 (divides both sides: the map is
-    /// periodic and symmetric).
+    /// Mean spacing of the posts along the loop [m]. Default 2.
     pub post_spacing: f64,
     /// Distance of the walls' posts from the centre line [m]. Default 1.5.
     pub wall_offset: f64,
@@ -71,7 +74,7 @@ impl Default for LoopWorld {
         Self {
             length: 24.0,
             width: 12.0,
-            post_spacing: 3.0,
+            post_spacing: 2.0,
             wall_offset: 1.5,
             features: 3,
             step: 0.5,
@@ -119,44 +122,40 @@ impl LoopWorld {
         }
     }
 
-    /// The posts: both walls at every `post_spacing` of arc length (corners included), and
-    /// the distinguishing posts at unique places on the inner side, between wall posts.
+    /// The posts: along the first half of the loop, at irregular spacings (between 0.5 and
+    /// 1.5 times `post_spacing`, from a fixed seed) on either wall; the second half is the
+    /// first turned by half a turn about the loop's centre, so that the map is symmetric
+    /// and every view of one half recurs in the other. The distinguishing posts sit at
+    /// unique places, half-way to the inner wall.
     pub fn map(&self) -> LandmarkSet {
         let mut lms = Vec::new();
-        let n = (self.perimeter() / self.post_spacing).round() as usize;
         let cov = [1e-4, 0.0, 0.0, 1e-4, 0.0, 1e-4];
-        for i in 0..n {
-            let (x, y, th) = self.along(i as f64 * self.post_spacing);
-            for side in [-1.0, 1.0] {
-                // Left of the heading is the inside of the counter-clockwise loop.
-                let (px, py) = (
-                    x - side * self.wall_offset * th.sin(),
-                    y + side * self.wall_offset * th.cos(),
-                );
-                lms.push(MapLandmark {
-                    id: None,
-                    gaussian: LandmarkGaussian {
-                        mean: [px, py, 0.0],
-                        cov,
-                    },
-                });
-            }
-        }
-        // Distinguishing posts: at 0.35, 0.55 and 0.9 of the perimeter (and more, spread),
-        // half-way between wall posts, half-way to the inner wall.
-        for f in 0..self.features {
-            let frac = [0.35, 0.55, 0.9, 0.15, 0.7][f % 5] + 0.01 * (f / 5) as f64;
-            let s = (frac * self.perimeter() / self.post_spacing).floor() * self.post_spacing
-                + 0.5 * self.post_spacing;
+        let post = |x: f64, y: f64| MapLandmark {
+            id: None,
+            gaussian: LandmarkGaussian {
+                mean: [x, y, 0.0],
+                cov,
+            },
+        };
+        let mut rng = stream(0x5EED_10CA, 0, 0);
+        let half = 0.5 * self.perimeter();
+        let mut s = rng.random::<f64>() * self.post_spacing;
+        while s < half {
             let (x, y, th) = self.along(s);
+            let side = if rng.random::<bool>() { 1.0 } else { -1.0 };
+            let (px, py) = (
+                x - side * self.wall_offset * th.sin(),
+                y + side * self.wall_offset * th.cos(),
+            );
+            lms.push(post(px, py));
+            lms.push(post(self.length - px, self.width - py));
+            s += self.post_spacing * (0.5 + rng.random::<f64>());
+        }
+        for f in 0..self.features {
+            let frac = [0.35, 0.6, 0.9, 0.15, 0.7][f % 5] + 0.01 * (f / 5) as f64;
+            let (x, y, th) = self.along(frac * self.perimeter());
             let off = 0.5 * self.wall_offset;
-            lms.push(MapLandmark {
-                id: None,
-                gaussian: LandmarkGaussian {
-                    mean: [x - off * th.sin(), y + off * th.cos(), 0.0],
-                    cov,
-                },
-            });
+            lms.push(post(x - off * th.sin(), y + off * th.cos()));
         }
         LandmarkSet {
             kind: LandmarkKind::RangeBearing2d,
@@ -260,6 +259,8 @@ pub struct RtpfExperiment {
     pub hold_seconds: f64,
     /// Odometry noise of the simulated robot (and of the filter).
     pub motion_noise: MotionNoise,
+    /// RTPF's mixture-weight optimisation.
+    pub rtpf: RtpfParams,
 }
 
 impl Default for RtpfExperiment {
@@ -281,6 +282,7 @@ impl Default for RtpfExperiment {
                 trans_per_sqrt_s: 0.01,
                 rot_per_sqrt_s: 0.01,
             },
+            rtpf: RtpfParams::default(),
         }
     }
 }
@@ -380,8 +382,34 @@ impl RtpfExperiment {
             },
             policy,
             window: Window::Fixed { k: window },
+            rtpf: self.rtpf,
             ..Default::default()
         }
+    }
+
+    /// The prior of a run: uniform along the corridor (arc length uniform, up to 0.5 m across
+    /// the centre line) with the heading along the corridor in either direction (σ 0.1 rad):
+    /// the robot is known to be in the corridor facing along it, not where nor which way.
+    pub fn corridor_prior(&self, seed: u64) -> Vec<Pose2> {
+        let w = &self.world;
+        (0..self.samples)
+            .map(|i| {
+                let mut rng = stream(seed, 0, 0xC0_0000 + i as u64);
+                let (x, y, th) = w.along(rng.random::<f64>() * w.perimeter());
+                let lat = rng.random_range(-0.5..0.5);
+                let back = if rng.random::<bool>() {
+                    std::f64::consts::PI
+                } else {
+                    0.0
+                };
+                let dth = 0.1 * rng.sample::<f64, _>(StandardNormal);
+                Pose2::new(
+                    x - lat * th.sin(),
+                    y + lat * th.cos(),
+                    wrap_angle(th + back + dth),
+                )
+            })
+            .collect()
     }
 
     /// One run.
@@ -394,6 +422,7 @@ impl RtpfExperiment {
     ) -> Result<RunResult, LocalizeError> {
         let cfg = self.localize_config(policy.unwrap_or_default(), window);
         let mut loc = Localizer::new(self.models(), cfg, seed.wrapping_mul(1000) + window as u64)?;
+        loc.initialise_with(self.corridor_prior(seed), 0.0)?;
         let mut error = Vec::with_capacity(sim.records.len());
         let mut current = f64::NAN;
         for r in &sim.records {
@@ -635,7 +664,7 @@ pub fn markdown_table(sums: &[Summary], end_time: f64) -> String {
     if let Some(b) = sums.iter().find(|s| s.policy == "baseline") {
         let _ = writeln!(
             out,
-            "| baseline (every record, full budget) | {} |{} |",
+            "| 1 (baseline: every record, full budget) | {} |{}",
             cell(b),
             " |".repeat(policies.len())
         );
@@ -807,8 +836,13 @@ mod tests {
     fn loop_world_is_symmetric_and_the_robot_stays_on_it() {
         let w = LoopWorld::default();
         let map = w.map();
-        // Both walls every 3 m over a 72 m loop, plus the distinguishing posts.
-        assert_eq!(map.len(), 2 * 24 + 3);
+        // Symmetric pairs, plus the distinguishing posts.
+        assert_eq!((map.len() - 3) % 2, 0);
+        assert!(map.len() > 30, "{} posts", map.len());
+        for pair in map.landmarks[..map.len() - 3].chunks(2) {
+            let (a, b) = (pair[0].gaussian.mean, pair[1].gaussian.mean);
+            assert!((a[0] + b[0] - 24.0).abs() < 1e-9 && (a[1] + b[1] - 12.0).abs() < 1e-9);
+        }
         let run = w.simulate(3, 200, &RtpfExperiment::default().motion_noise);
         assert_eq!(run.records.len(), 200);
         let seen = run.records.iter().filter(|r| !r.landmarks.is_empty()).count();

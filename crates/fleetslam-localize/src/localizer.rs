@@ -12,10 +12,13 @@
 //!    pose: `x' = x ⊕ (Δ + e)`, `e ~ N(0, diag(σ²))`.
 //! 3. **Correction.** Each sample is weighed by the likelihood of the record's observations
 //!    in the fixed map ([`crate::map::Scorer`]).
-//! 4. **Resampling.** Low-variance (systematic) resampling at the start of every update, to
-//!    a number of samples chosen by KLD-sampling (Fox 2001, [`crate::config::KldParams`]):
+//! 4. **Resampling.** Low-variance (systematic) resampling at the start of an update, to a
+//!    number of samples chosen by KLD-sampling (Fox 2001, [`crate::config::KldParams`]):
 //!    multinomial draws from the weighted set are binned until the bound for the number of
-//!    occupied bins is reached, and that many samples are then drawn systematically.
+//!    occupied bins is reached, and that many samples are then drawn systematically. A
+//!    one-record update whose budget is unchanged skips resampling while the effective
+//!    sample size stays above `resample_threshold` (Doucet, de Freitas, Gordon 2001), which
+//!    keeps the modes of a symmetric map's belief alive.
 //!
 //! An update covers a window of `k` records ([`crate::config::Window`]); with `k > 1` the
 //! [`crate::config::Policy`] decides how the sample budget `N` is spent (see
@@ -420,6 +423,30 @@ impl Localizer {
         self.update(map).map(Some)
     }
 
+    /// Starts from the given samples (equal weights) instead of the uniform prior over the
+    /// map: for a robot known to be in some region (a corridor, a room). `t` is the time of
+    /// the prior; records before it are refused.
+    pub fn initialise_with(&mut self, poses: Vec<Pose2>, t: f64) -> Result<(), LocalizeError> {
+        if poses.is_empty() || poses.iter().any(|p| !p.is_finite()) || !t.is_finite() {
+            return Err(LocalizeError::Config(
+                "a prior needs at least one sample, all finite, and a finite time".into(),
+            ));
+        }
+        if self.is_initialised() || !self.pending.is_empty() {
+            return Err(LocalizeError::Config(
+                "the localizer is already initialised".into(),
+            ));
+        }
+        let n = poses.len();
+        self.poses = poses;
+        self.log_w = vec![-(n as f64).ln(); n];
+        self.ess = n as f64;
+        self.window_open_t = t;
+        self.last_t = Some(t);
+        self.step += 1;
+        Ok(())
+    }
+
     /// Global initialisation: uniform over the map's extent, uniform heading.
     fn initialise(&mut self, map: &LandmarkSet, t: f64) -> Result<(), LocalizeError> {
         let ext = map
@@ -490,9 +517,14 @@ impl Localizer {
         weigh: &[bool],
         scorer: &Scorer<'_>,
         per_record: bool,
+        resample: bool,
     ) -> SetResult {
-        let mut rrng = stream(self.seed, self.step, u64::MAX - set);
-        let idx = systematic_n(log_w, n, &mut rrng);
+        let idx = if resample {
+            let mut rrng = stream(self.seed, self.step, u64::MAX - set);
+            systematic_n(log_w, n, &mut rrng)
+        } else {
+            (0..poses.len()).collect()
+        };
         let (seed, step) = (self.seed, self.step);
         let rows: Vec<(Pose2, f64, Vec<f64>)> = idx
             .par_iter()
@@ -500,7 +532,8 @@ impl Localizer {
             .map(|(i, &from)| {
                 let mut rng = stream(seed, step, (set << SET_SHIFT) | i as u64);
                 let mut p = poses[from];
-                let mut ll = 0.0;
+                // Without resampling, a sample keeps its weight.
+                let mut ll = if resample { 0.0 } else { log_w[from] };
                 let mut rec_ll = Vec::new();
                 for (j, s) in steps.iter().enumerate() {
                     p = sample_motion(&p, &s.inc, &s.std, &mut rng);
@@ -565,6 +598,9 @@ impl Localizer {
                 // The newest record with observations; the others' observations are dropped.
                 let newest = has_obs.iter().rposition(|b| *b);
                 let weigh: Vec<bool> = (0..k).map(|j| Some(j) == newest).collect();
+                let keep = n == self.poses.len()
+                    && self.ess >= self.config.resample_threshold * n as f64
+                    && self.config.resample_threshold < 1.0;
                 if newest.is_some() {
                     integrated = 1;
                     skipped = observing as u64 - 1;
@@ -579,6 +615,7 @@ impl Localizer {
                     &weigh,
                     &scorer,
                     false,
+                    !keep,
                 );
                 (r.poses, r.ll)
             }
@@ -597,6 +634,7 @@ impl Localizer {
                         &[true],
                         &scorer,
                         false,
+                        true,
                     );
                     poses = r.poses;
                     log_w = r.ll;
@@ -624,6 +662,7 @@ impl Localizer {
                         &weigh,
                         &scorer,
                         false,
+                        true,
                     );
                     normalize_log_weights(&mut r.ll);
                     if has_obs[i] {
@@ -643,6 +682,7 @@ impl Localizer {
                         &steps,
                         &[],
                         &scorer,
+                        true,
                         true,
                     );
                     gradient_evals = (m * observing) as u64;

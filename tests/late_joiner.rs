@@ -35,8 +35,8 @@ fn mrclam_robot_5_joins_after_the_others_mapped_for_a_minute() {
         join_at: Some(join_at),
         localize: LocalizeConfig::default(),
     };
-    let out = run_log_joining(&mut run, &imp.log, TrajectoryEstimate::Mean, &jo, |_, _| {})
-        .unwrap();
+    let out =
+        run_log_joining(&mut run, &imp.log, TrajectoryEstimate::Mean, &jo, |_, _| {}).unwrap();
     let j = &out.metrics.joiners[0];
     assert_eq!(j.id, "5");
     assert!(j.dropped_before_join > 0);
@@ -47,7 +47,11 @@ fn mrclam_robot_5_joins_after_the_others_mapped_for_a_minute() {
         j.localization.stats.updates,
         j.localization.samples
     );
-    assert!(joined - join_at < 60.0, "joined {} s late", joined - join_at);
+    assert!(
+        joined - join_at < 60.0,
+        "joined {} s late",
+        joined - join_at
+    );
     // Its trajectory starts when it joined; evaluated against Vicon in the shared frame.
     let traj = &out.estimate.trajectories["5"];
     assert!(traj.first().unwrap().t >= joined);
@@ -60,7 +64,11 @@ fn mrclam_robot_5_joins_after_the_others_mapped_for_a_minute() {
     assert!(r5.matched_poses > 100);
     assert!(r5.ate_rmse < 0.5, "robot 5 ATE {} m", r5.ate_rmse);
     for id in ["1", "2", "3", "4"] {
-        assert!(ev.robots[id].ate_rmse < 0.8, "robot {id}: {}", ev.robots[id].ate_rmse);
+        assert!(
+            ev.robots[id].ate_rmse < 0.8,
+            "robot {id}: {}",
+            ev.robots[id].ate_rmse
+        );
     }
 }
 

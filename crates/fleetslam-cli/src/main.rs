@@ -11,9 +11,9 @@ use fleetslam_core::sensor::LandmarkKind;
 use fleetslam_data::evaluate::{Alignment, EvalOptions, evaluate_dir};
 use fleetslam_data::import::{MrclamOptions, VictoriaOptions, import_mrclam, import_victoria_park};
 use fleetslam_data::run::{JoinOptions, TrajectoryEstimate, run_log_joining};
+use fleetslam_data::sim::{SimConfig, simulate};
 use fleetslam_localize::experiment::RtpfExperiment;
 use fleetslam_localize::{LateJoinSlam, LocalizeConfig, Policy};
-use fleetslam_data::sim::{SimConfig, simulate};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 
@@ -68,7 +68,11 @@ struct RtpfArgs {
     #[arg(long, default_value_t = 30)]
     seeds: usize,
     /// Window sizes, comma-separated.
-    #[arg(long, value_delimiter = ',', default_value = "2,3,4,5,6,7,8,9,10,11,12,13,14")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "2,3,4,5,6,7,8,9,10,11,12,13,14"
+    )]
     windows: Vec<usize>,
     /// Policies besides the baseline, comma-separated.
     #[arg(long, value_delimiter = ',', default_value = "skip,naive,uniform,rtpf")]

@@ -168,7 +168,14 @@ pub fn run_log(
     }
     progress(total, total);
     let wall = start.elapsed().as_secs_f64();
-    Ok(finish(slam, trajectories, step_ns, wall, skipped, shared_frame))
+    Ok(finish(
+        slam,
+        trajectories,
+        step_ns,
+        wall,
+        skipped,
+        shared_frame,
+    ))
 }
 
 /// The output of a run from the filter's final state and the per-step timings.

@@ -215,8 +215,8 @@ impl LoopWorld {
                 if rng.random::<f64>() > self.detection {
                     continue;
                 }
-                let range = (z[0] + SENSOR_NOISE.range * rng.sample::<f64, _>(StandardNormal))
-                    .max(0.01);
+                let range =
+                    (z[0] + SENSOR_NOISE.range * rng.sample::<f64, _>(StandardNormal)).max(0.01);
                 let bearing =
                     wrap_angle(z[1] + SENSOR_NOISE.bearing * rng.sample::<f64, _>(StandardNormal));
                 landmarks.push(LandmarkObservation {
@@ -439,7 +439,10 @@ impl RtpfExperiment {
             error.push(current);
         }
         // Before the first update the belief is the uniform prior: its error is large.
-        let first = error.iter().position(|e| e.is_finite()).unwrap_or(error.len());
+        let first = error
+            .iter()
+            .position(|e| e.is_finite())
+            .unwrap_or(error.len());
         let fill = error.get(first).copied().unwrap_or(f64::NAN);
         error.iter_mut().take(first).for_each(|e| *e = fill);
         let st = loc.stats();
@@ -458,7 +461,10 @@ impl RtpfExperiment {
 
     /// Every run: the baseline once per seed, each policy for each window and seed. Runs go
     /// in parallel; each is deterministic, so the result does not depend on the threads.
-    pub fn run(&self, progress: impl Fn(usize, usize) + Sync) -> Result<Vec<RunResult>, LocalizeError> {
+    pub fn run(
+        &self,
+        progress: impl Fn(usize, usize) + Sync,
+    ) -> Result<Vec<RunResult>, LocalizeError> {
         self.validate()?;
         let sims: Vec<LoopRun> = (0..self.seeds as u64)
             .into_par_iter()
@@ -575,7 +581,8 @@ pub fn write_outputs(
     std::fs::create_dir_all(dir).map_err(|e| io_err(dir, e))?;
     let end = exp.records as f64;
     let sums = summarize(results, end);
-    let mut keys: Vec<(String, usize)> = sums.iter().map(|s| (s.policy.clone(), s.window)).collect();
+    let mut keys: Vec<(String, usize)> =
+        sums.iter().map(|s| (s.policy.clone(), s.window)).collect();
     keys.dedup();
 
     let mut errors = String::from("policy,window,t,error_mean,error_ci95\n");
@@ -629,7 +636,12 @@ pub fn speedups(sums: &[Summary]) -> Vec<(usize, f64, f64, f64)> {
             .iter()
             .find(|r| r.policy == "rtpf" && r.window == s.window)
         {
-            out.push((s.window, s.time_mean, r.time_mean, s.time_mean / r.time_mean));
+            out.push((
+                s.window,
+                s.time_mean,
+                r.time_mean,
+                s.time_mean / r.time_mean,
+            ));
         }
     }
     out
@@ -725,11 +737,7 @@ fn plot(
     // Three error panels: small, middle and large window sizes of those run.
     let mut ws = exp.windows.clone();
     ws.sort_unstable();
-    let picks = [
-        ws[0],
-        ws[ws.len() / 2],
-        ws[ws.len() - 1],
-    ];
+    let picks = [ws[0], ws[ws.len() / 2], ws[ws.len() - 1]];
     let colors = [BLACK, RED, BLUE, GREEN, MAGENTA];
     let names: Vec<String> = std::iter::once("baseline".to_string())
         .chain(exp.policies.iter().map(|p| p.as_str().to_string()))
@@ -738,8 +746,7 @@ fn plot(
         .iter()
         .flat_map(|r| r.error.iter())
         .fold(0.0f64, |a, b| a.max(*b))
-        .min(20.0)
-        .max(1.0);
+        .clamp(1.0, 20.0);
     for (panel, &k) in panels.iter().take(3).zip(&picks) {
         let mut chart = ChartBuilder::on(panel)
             .caption(
@@ -766,7 +773,10 @@ fn plot(
             let col = colors[ci % colors.len()];
             chart
                 .draw_series(LineSeries::new(
-                    curve.iter().enumerate().map(|(t, (m, _))| ((t + 1) as f64, *m)),
+                    curve
+                        .iter()
+                        .enumerate()
+                        .map(|(t, (m, _))| ((t + 1) as f64, *m)),
                     col.stroke_width(2),
                 ))
                 .map_err(|x| e(&x))?
@@ -819,10 +829,7 @@ fn plot(
         )
         .map_err(|x| e(&x))?;
     chart
-        .draw_series(LineSeries::new(
-            [(0.0, 1.0), (kmax, 1.0)],
-            BLACK.mix(0.5),
-        ))
+        .draw_series(LineSeries::new([(0.0, 1.0), (kmax, 1.0)], BLACK.mix(0.5)))
         .map_err(|x| e(&x))?;
     root.present().map_err(|x| e(&x))?;
     Ok(())
@@ -845,7 +852,11 @@ mod tests {
         }
         let run = w.simulate(3, 200, &RtpfExperiment::default().motion_noise);
         assert_eq!(run.records.len(), 200);
-        let seen = run.records.iter().filter(|r| !r.landmarks.is_empty()).count();
+        let seen = run
+            .records
+            .iter()
+            .filter(|r| !r.landmarks.is_empty())
+            .count();
         assert!(seen > 150, "{seen} records see posts");
         // The robot follows the loop.
         let far = run

@@ -235,8 +235,7 @@ impl LateJoinSlam {
         let models = Models::from_filter(self.slam.config());
         let seed = localizer_seed(self.slam.config().seed, id);
         let localizer = Localizer::new(models, self.localize.clone(), seed)?;
-        self.joiner_index
-            .insert(id.to_string(), self.joiners.len());
+        self.joiner_index.insert(id.to_string(), self.joiners.len());
         self.joiners.push(Joiner {
             id: id.to_string(),
             phase: Phase::Localizing,

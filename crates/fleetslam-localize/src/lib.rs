@@ -40,6 +40,6 @@ pub mod rtpf;
 
 pub use config::{LocalizeConfig, Models, Policy, Window};
 pub use error::LocalizeError;
-pub use joining::{LateJoinSlam, MapLocalization, Phase};
+pub use joining::{LateJoinSlam, LateJoinSnapshot, MapLocalization, Phase};
 pub use localizer::Localizer;
 pub use map::LandmarkSet;

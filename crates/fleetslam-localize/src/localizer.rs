@@ -650,7 +650,7 @@ impl Localizer {
                 // k sample sets; set i integrates record i only (a mixture component).
                 let mut poses = Vec::with_capacity(n);
                 let mut set_logw: Vec<Vec<f64>> = Vec::with_capacity(k);
-                for i in 0..k {
+                for (i, observes) in has_obs.iter().enumerate() {
                     let ni = (n / k + usize::from(i < n % k)).max(1);
                     let weigh: Vec<bool> = (0..k).map(|j| j == i).collect();
                     let mut r = self.run_set(
@@ -665,7 +665,7 @@ impl Localizer {
                         true,
                     );
                     normalize_log_weights(&mut r.ll);
-                    if has_obs[i] {
+                    if *observes {
                         evals += ni as u64;
                     }
                     poses.extend(r.poses);

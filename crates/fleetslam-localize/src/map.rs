@@ -386,7 +386,9 @@ mod tests {
         m.landmarks[0].gaussian.mean[0] = 0.0;
         m.landmarks[0].gaussian.cov[0] = -1.0;
         assert!(LandmarkSet::new(m.kind, m.landmarks).is_err());
-        let e = one(LandmarkKind::RangeBearing2d, [1.0, 2.0, 0.0]).extent(1.0).unwrap();
+        let e = one(LandmarkKind::RangeBearing2d, [1.0, 2.0, 0.0])
+            .extent(1.0)
+            .unwrap();
         assert_eq!(e.min, [0.0, 1.0]);
         assert_eq!(e.max, [2.0, 3.0]);
     }

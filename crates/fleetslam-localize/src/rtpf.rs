@@ -118,8 +118,8 @@ pub fn group_by_grid(poses: &[[f64; 3]], cell: f64, cell_theta: f64) -> Vec<usiz
     let mut order: Vec<(i64, i64, i64)> = Vec::new();
     for p in poses {
         let c = key(p);
-        if !cells.contains_key(&c) {
-            cells.insert(c, order.len());
+        if let std::collections::hash_map::Entry::Vacant(e) = cells.entry(c) {
+            e.insert(order.len());
             order.push(c);
         }
     }

@@ -177,7 +177,11 @@ fn global_localization_converges_from_a_uniform_prior_and_kld_shrinks_the_set() 
     assert!(err < 0.3, "final error {err} m");
     // KLD-sampling: the converged filter needs a fraction of the global set.
     assert_eq!(first.samples, 4000);
-    assert!(rep.samples <= 800, "{} samples after convergence", rep.samples);
+    assert!(
+        rep.samples <= 800,
+        "{} samples after convergence",
+        rep.samples
+    );
     assert!(loc.is_converged());
 }
 
@@ -259,7 +263,10 @@ fn skip_counts_what_it_drops_and_budget_windows_follow_record_times() {
     // window, then every 2 s of data closes one of 4 records; 3 records stay pending.
     let expect: std::collections::BTreeMap<usize, u64> = [(4, 8), (5, 1)].into();
     assert_eq!(st.windows, expect);
-    let observing = recs[..37].iter().filter(|r| !r.landmarks.is_empty()).count() as u64;
+    let observing = recs[..37]
+        .iter()
+        .filter(|r| !r.landmarks.is_empty())
+        .count() as u64;
     assert_eq!(st.integrated, 9);
     assert_eq!(st.skipped, observing - 9);
     assert_eq!(loc.status().pending, 3);
@@ -298,7 +305,8 @@ fn fresh_run() -> LateJoinSlam {
     let (cfg, loc) = join_config();
     let (_, start_a) = two_robot_log();
     let mut run = LateJoinSlam::new(cfg, loc).unwrap();
-    run.add_robot("a", &PoseGaussian::exact(start_a), 0.0).unwrap();
+    run.add_robot("a", &PoseGaussian::exact(start_a), 0.0)
+        .unwrap();
     run.add_unknown_robot("b").unwrap();
     run
 }
@@ -367,7 +375,10 @@ fn snapshot_round_trip_continues_bit_for_bit() {
         for r in &recs[cut..] {
             resumed.step(r).unwrap();
         }
-        assert!(text(&resumed) == text(&whole), "differs after a cut at {cut}");
+        assert!(
+            text(&resumed) == text(&whole),
+            "differs after a cut at {cut}"
+        );
     }
     assert_eq!(whole.phase("b"), Some(Phase::Mapping));
 }
@@ -385,7 +396,8 @@ fn same_seed_same_result_for_any_thread_count_and_seeds_matter() {
             cfg.seed = seed;
             let (_, start_a) = two_robot_log();
             let mut run = LateJoinSlam::new(cfg, loc).unwrap();
-            run.add_robot("a", &PoseGaussian::exact(start_a), 0.0).unwrap();
+            run.add_robot("a", &PoseGaussian::exact(start_a), 0.0)
+                .unwrap();
             run.add_unknown_robot("b").unwrap();
             for r in &recs[..120] {
                 run.step(r).unwrap();

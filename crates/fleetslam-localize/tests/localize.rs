@@ -437,3 +437,50 @@ fn bad_input_is_an_error_not_a_panic() {
     };
     assert!(run.step(&stranger).is_err());
 }
+
+#[test]
+fn localization_only_in_a_stored_map_leaves_the_map_alone_and_round_trips() {
+    use fleetslam_localize::MapLocalization;
+    let map = fixed_map();
+    let (recs, truth) = circle_robot("r", [8.0, 8.0], 4.0, 1.0, 80, 0.0, 21);
+    let new = || {
+        let mut m =
+            MapLocalization::new(map.clone(), models(), LocalizeConfig::default(), 9).unwrap();
+        m.add_robot("r").unwrap();
+        m
+    };
+    let mut whole = new();
+    for r in &recs {
+        whole.step(r).unwrap();
+    }
+    assert_eq!(whole.map(), &map, "the stored map never changes");
+    let ph = whole.phases();
+    assert_eq!(ph[0].phase, Phase::Converged);
+    let err = whole
+        .localizer("r")
+        .unwrap()
+        .spread()
+        .mean
+        .distance(truth.last().unwrap());
+    assert!(err < 0.3, "error {err} m");
+    // Serialised half-way, restored, continued: the same state.
+    let mut first = new();
+    for r in &recs[..30] {
+        first.step(r).unwrap();
+    }
+    let json = serde_json::to_string(&first).unwrap();
+    let mut resumed: MapLocalization = serde_json::from_str(&json).unwrap();
+    resumed.check().unwrap();
+    for r in &recs[30..] {
+        resumed.step(r).unwrap();
+    }
+    assert!(resumed == whole);
+    // A robot it does not know is an error; a map too small for the configuration too.
+    let stranger = Record {
+        robot: "x".into(),
+        ..recs[0].clone()
+    };
+    assert!(whole.step(&stranger).is_err());
+    let tiny = LandmarkSet::new(LandmarkKind::RangeBearing2d, map.landmarks[..2].to_vec()).unwrap();
+    assert!(MapLocalization::new(tiny, models(), LocalizeConfig::default(), 9).is_err());
+}

@@ -261,6 +261,9 @@ pub struct RtpfExperiment {
     pub motion_noise: MotionNoise,
     /// RTPF's mixture-weight optimisation.
     pub rtpf: RtpfParams,
+    /// The localizer's `resample_threshold` (one-record and skip updates). Default 0.5;
+    /// 1.0 resamples at every update, as the paper's filters do.
+    pub resample_threshold: f64,
 }
 
 impl Default for RtpfExperiment {
@@ -283,6 +286,7 @@ impl Default for RtpfExperiment {
                 rot_per_sqrt_s: 0.01,
             },
             rtpf: RtpfParams::default(),
+            resample_threshold: 0.5,
         }
     }
 }
@@ -383,6 +387,7 @@ impl RtpfExperiment {
             policy,
             window: Window::Fixed { k: window },
             rtpf: self.rtpf,
+            resample_threshold: self.resample_threshold,
             ..Default::default()
         }
     }

@@ -19,6 +19,10 @@
 //!    to the filter in order, and from then on the robot's records go to the filter like
 //!    any other robot's.
 //!
+//! While a robot localizes, its records' sightings of other robots are not used, and the
+//! other robots' sightings of it count as unmatched in the filter (as for any robot the
+//! filter does not hold yet).
+//!
 //! Everything is deterministic: windows are decided from record times, every draw comes
 //! from a counter-based stream (the localizer's seed is derived from the run's seed and the
 //! robot's id), and the whole state serialises ([`LateJoinSnapshot`]) and continues bit for

@@ -4,11 +4,20 @@ use std::process::Command;
 
 #[test]
 fn core_has_no_runtime_web_database_or_burn_dependency() {
+    check_crate("fleetslam-core");
+}
+
+#[test]
+fn localize_has_no_runtime_web_database_or_burn_dependency() {
+    check_crate("fleetslam-localize");
+}
+
+fn check_crate(krate: &str) {
     let out = Command::new(env!("CARGO"))
         .args([
             "tree",
             "-p",
-            "fleetslam-core",
+            krate,
             "-e",
             "normal,build",
             "--prefix",
@@ -42,7 +51,7 @@ fn core_has_no_runtime_web_database_or_burn_dependency() {
     ] {
         assert!(
             !names.contains(&banned),
-            "fleetslam-core must not depend on {banned}:\n{tree}"
+            "{krate} must not depend on {banned}:\n{tree}"
         );
     }
 }

@@ -10,8 +10,10 @@ use fleetslam_core::log::Log;
 use fleetslam_core::sensor::LandmarkKind;
 use fleetslam_data::evaluate::{Alignment, EvalOptions, evaluate_dir};
 use fleetslam_data::import::{MrclamOptions, VictoriaOptions, import_mrclam, import_victoria_park};
-use fleetslam_data::run::{TrajectoryEstimate, run_log};
+use fleetslam_data::run::{JoinOptions, TrajectoryEstimate, run_log_joining};
 use fleetslam_data::sim::{SimConfig, simulate};
+use fleetslam_localize::experiment::RtpfExperiment;
+use fleetslam_localize::{LateJoinSlam, LocalizeConfig, Policy};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 
@@ -50,6 +52,69 @@ enum Command {
     Export(history::ExportArgs),
     /// Delete a run and all its data.
     Delete(history::DeleteArgs),
+    /// Reproduce an experiment: `rtpf` (the real-time particle filter paper's, simulated).
+    Experiment {
+        #[command(subcommand)]
+        which: ExperimentCommand,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum ExperimentCommand {
+    /// Global localization in a symmetric loop with a fixed sample budget and windows of k
+    /// records: baseline, skip, naive, uniform and rtpf. Writes errors.csv, times.csv,
+    /// speedup.csv and rtpf.png into OUT.
+    Rtpf(RtpfArgs),
+}
+
+#[derive(Debug, Args)]
+struct RtpfArgs {
+    #[arg(long)]
+    out: PathBuf,
+    /// Runs per policy and window size.
+    #[arg(long, default_value_t = 30)]
+    seeds: usize,
+    /// Window sizes, comma-separated.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "2,3,4,5,6,7,8,9,10,11,12,13,14"
+    )]
+    windows: Vec<usize>,
+    /// Policies besides the baseline, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "skip,naive,uniform,rtpf")]
+    policies: Vec<PolicyArg>,
+    /// Sample budget per update.
+    #[arg(long, default_value_t = 3000)]
+    samples: usize,
+    /// Records (seconds) per run.
+    #[arg(long, default_value_t = 300)]
+    records: usize,
+    /// A JSON or TOML file with any RtpfExperiment fields; flags given explicitly win.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum PolicyArg {
+    Skip,
+    Naive,
+    Uniform,
+    Rtpf,
+}
+
+impl From<PolicyArg> for Policy {
+    fn from(p: PolicyArg) -> Self {
+        match p {
+            PolicyArg::Skip => Policy::Skip,
+            PolicyArg::Naive => Policy::Naive,
+            PolicyArg::Uniform => Policy::Uniform,
+            PolicyArg::Rtpf => Policy::Rtpf,
+        }
+    }
 }
 
 #[derive(Debug, Args)]
@@ -223,6 +288,20 @@ struct RunArgs {
     /// Which pose the trajectories record.
     #[arg(long, value_parser = ["mean", "best"], default_value = "mean")]
     trajectory: String,
+    /// Forget this robot's start pose: it is localized in the others' map and merged when
+    /// localized (repeatable). Robots the header gives no start are always localized.
+    #[arg(long)]
+    unknown: Vec<String>,
+    /// The --unknown robots' records before this time [s, log time] are dropped: they join
+    /// the run then.
+    #[arg(long)]
+    join_at: Option<f64>,
+    /// A JSON or TOML file with any LocalizeConfig fields, for the joining robots.
+    #[arg(long)]
+    localize_config: Option<PathBuf>,
+    /// Real-time policy of the joining robots' localizers (for windows of several records).
+    #[arg(long, value_enum)]
+    policy: Option<PolicyArg>,
 }
 
 #[derive(Debug, Args)]
@@ -258,6 +337,9 @@ fn main() -> Result<()> {
         Command::Runs(a) => runtime()?.block_on(history::cmd_runs(a)),
         Command::Export(a) => runtime()?.block_on(history::cmd_export(a)),
         Command::Delete(a) => runtime()?.block_on(history::cmd_delete(a)),
+        Command::Experiment {
+            which: ExperimentCommand::Rtpf(a),
+        } => cmd_experiment_rtpf(a),
     }
 }
 
@@ -390,13 +472,25 @@ fn cmd_run(a: RunArgs) -> Result<()> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()?;
-    let mut slam = FastSlam::new(cfg).context("configuring the filter")?;
+    let mut localize: LocalizeConfig =
+        layered(&LocalizeConfig::default(), a.localize_config.as_deref())?;
+    if let Some(p) = a.policy {
+        localize.policy = p.into();
+    }
+    let slam = FastSlam::new(cfg).context("configuring the filter")?;
+    let mut run = LateJoinSlam::from_slam(slam, localize.clone())
+        .context("configuring the localization of joining robots")?;
+    let opts = JoinOptions {
+        unknown: a.unknown.clone(),
+        join_at: a.join_at,
+        localize,
+    };
     let bar = ProgressBar::new(log.records.len() as u64);
     bar.set_style(ProgressStyle::with_template(
         "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} records ({per_sec}, eta {eta})",
     )?);
     let out = pool.install(|| {
-        run_log(&mut slam, &log, which, |done, _| {
+        run_log_joining(&mut run, &log, which, &opts, |done, _| {
             bar.set_position(done as u64)
         })
     })?;
@@ -416,6 +510,49 @@ fn cmd_run(a: RunArgs) -> Result<()> {
         m.landmarks,
         m.resamples,
         a.out.display()
+    );
+    for j in &m.joiners {
+        match j.joined_at {
+            Some(t) => println!(
+                "robot {} joined at t={t:.2} after {} localization updates ({} samples now)",
+                j.id, j.localization.stats.updates, j.localization.samples
+            ),
+            None => println!(
+                "robot {} did not localize: {} updates, position spread {:.2} m",
+                j.id, j.localization.stats.updates, j.localization.position_spread
+            ),
+        }
+    }
+    Ok(())
+}
+
+fn cmd_experiment_rtpf(a: RtpfArgs) -> Result<()> {
+    let mut exp: RtpfExperiment = layered(&RtpfExperiment::default(), a.config.as_deref())?;
+    exp.seeds = a.seeds;
+    exp.windows = a.windows.clone();
+    exp.policies = a.policies.iter().map(|p| (*p).into()).collect();
+    exp.samples = a.samples;
+    exp.records = a.records;
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(a.threads.unwrap_or(0))
+        .build()?;
+    let runs = exp.seeds * (1 + exp.windows.len() * exp.policies.len());
+    let bar = ProgressBar::new(runs as u64);
+    bar.set_style(ProgressStyle::with_template(
+        "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} runs (eta {eta})",
+    )?);
+    let started = std::time::Instant::now();
+    let results = pool.install(|| exp.run(|done, _| bar.set_position(done as u64)))?;
+    bar.finish_and_clear();
+    let sums = fleetslam_localize::experiment::write_outputs(&exp, &results, &a.out)?;
+    println!(
+        "{runs} runs in {:.1} s -> {}",
+        started.elapsed().as_secs_f64(),
+        a.out.display()
+    );
+    println!(
+        "{}",
+        fleetslam_localize::experiment::markdown_table(&sums, exp.records as f64)
     );
     Ok(())
 }

@@ -157,3 +157,81 @@ fn errors_say_what_was_wrong() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && err.contains("particles"), "{err}");
 }
+
+#[test]
+fn run_localizes_a_robot_whose_start_is_forgotten() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = |p: &str| dir.path().join(p).to_string_lossy().into_owned();
+    ok(&[
+        "simulate",
+        "--robots",
+        "3",
+        "--duration",
+        "60",
+        "--seed",
+        "4",
+        "--out",
+        &d("sim"),
+    ]);
+    let printed = ok(&[
+        "run",
+        &d("sim/log.ndjson"),
+        "--particles",
+        "50",
+        "--seed",
+        "1",
+        "--unknown",
+        "3",
+        "--join-at",
+        "10",
+        "--out",
+        &d("run"),
+    ]);
+    assert!(printed.contains("robot 3 joined"), "{printed}");
+    let m = json(&dir.path().join("run/metrics.json"));
+    let j = &m["joiners"][0];
+    assert_eq!(j["id"], "3");
+    assert!(j["joined_at"].as_f64().unwrap() >= 10.0, "{j}");
+    assert!(j["dropped_before_join"].as_u64().unwrap() > 0, "{j}");
+    assert_eq!(j["localization"]["converged"], true);
+    // A robot the log does not have is an error that names it.
+    let out = fleetslam(&[
+        "run",
+        &d("sim/log.ndjson"),
+        "--unknown",
+        "nobody",
+        "--out",
+        &d("bad"),
+    ]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("nobody"));
+}
+
+#[test]
+fn experiment_rtpf_writes_its_tables_and_plot() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("rtpf");
+    let printed = ok(&[
+        "experiment",
+        "rtpf",
+        "--seeds",
+        "2",
+        "--windows",
+        "2,4",
+        "--samples",
+        "400",
+        "--records",
+        "60",
+        "--out",
+        &out.to_string_lossy(),
+    ]);
+    assert!(printed.contains("rtpf speedup over skip"), "{printed}");
+    for f in ["errors.csv", "times.csv", "speedup.csv", "rtpf.png"] {
+        assert!(out.join(f).is_file(), "{f} missing");
+    }
+    let times = std::fs::read_to_string(out.join("times.csv")).unwrap();
+    // The baseline and 4 policies x 2 windows.
+    assert_eq!(times.lines().count(), 1 + 1 + 8, "{times}");
+    let png = std::fs::read(out.join("rtpf.png")).unwrap();
+    assert_eq!(&png[1..4], b"PNG");
+}

@@ -1,9 +1,16 @@
 //! Runs a log through the filter offline and collects what `fleetslam run` writes:
 //! per-robot trajectories, the final landmarks and timing metrics.
+//!
+//! [`run_log`] applies the records of robots with a known start and skips the others;
+//! [`run_log_joining`] localizes robots without a known start against the run's map and
+//! merges them when localized ([`fleetslam_localize::LateJoinSlam`]). For a log whose robots
+//! all have known starts the two give bit-identical filters.
 
 use crate::formats::{LandmarkRow, TrajectoryPoint, Truth};
 use fleetslam_core::filter::{Estimate, FastSlam, FilterError};
 use fleetslam_core::log::{Log, record_order};
+use fleetslam_localize::localizer::LocalizerStatus;
+use fleetslam_localize::{LateJoinSlam, LocalizeConfig, LocalizeError};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 use std::time::Instant;
@@ -45,6 +52,34 @@ pub struct RunMetrics {
     /// evaluation then needs no alignment.
     pub shared_frame: bool,
     pub threads: usize,
+    /// Robots that joined at an unknown pose ([`run_log_joining`]); absent otherwise.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub joiners: Vec<JoinerMetrics>,
+}
+
+/// What happened to a robot that joined at an unknown pose.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct JoinerMetrics {
+    pub id: String,
+    /// Time it entered the filter [s]; `None` if it never localized.
+    pub joined_at: Option<f64>,
+    /// Its records dropped before `join_at`.
+    pub dropped_before_join: u64,
+    /// The localizer's final state and counters.
+    pub localization: LocalizerStatus,
+}
+
+/// How [`run_log_joining`] treats robots without a known start.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct JoinOptions {
+    /// Robots whose start pose is forgotten, so that they are localized, besides those the
+    /// header gives no start.
+    pub unknown: Vec<String>,
+    /// The `unknown` robots' records before this time are dropped: they join the run then
+    /// (as if switched on at that time).
+    pub join_at: Option<f64>,
+    /// Localization of the joining robots.
+    pub localize: LocalizeConfig,
 }
 
 /// The result of a run.
@@ -133,6 +168,25 @@ pub fn run_log(
     }
     progress(total, total);
     let wall = start.elapsed().as_secs_f64();
+    Ok(finish(
+        slam,
+        trajectories,
+        step_ns,
+        wall,
+        skipped,
+        shared_frame,
+    ))
+}
+
+/// The output of a run from the filter's final state and the per-step timings.
+fn finish(
+    slam: &FastSlam,
+    trajectories: std::collections::BTreeMap<String, Vec<TrajectoryPoint>>,
+    mut step_ns: Vec<u64>,
+    wall: f64,
+    skipped: u64,
+    shared_frame: bool,
+) -> RunOutput {
     step_ns.sort_unstable();
     let pct = |p: f64| -> f64 {
         if step_ns.is_empty() {
@@ -167,16 +221,117 @@ pub fn run_log(
         skipped_records: skipped,
         shared_frame,
         threads: rayon::current_num_threads(),
+        joiners: Vec::new(),
     };
     let landmarks = landmark_rows(&est);
-    Ok(RunOutput {
+    RunOutput {
         estimate: Truth {
             trajectories,
             landmarks,
         },
         metrics,
         final_estimate: est,
-    })
+    }
+}
+
+/// [`run_log`] with late joiners: robots of the header without a start pose, and those
+/// named in `opts.unknown`, are registered as unknown; their records are localized against
+/// the run's best map until they converge, and from then on they map
+/// ([`LateJoinSlam`]). Their trajectories start when they join. Records of the `unknown`
+/// robots before `opts.join_at` are dropped. At least one robot needs a known start, or
+/// there is no map to localize in. For a log without such robots the filter ends
+/// bit-identical to [`run_log`]'s.
+pub fn run_log_joining(
+    run: &mut LateJoinSlam,
+    log: &Log,
+    which: TrajectoryEstimate,
+    opts: &JoinOptions,
+    mut progress: impl FnMut(usize, usize),
+) -> Result<RunOutput, LocalizeError> {
+    for u in &opts.unknown {
+        if !log.header.robots.iter().any(|r| &r.id == u) {
+            return Err(LocalizeError::Robot(format!(
+                "--unknown {u:?}: the log has no such robot (it has {:?})",
+                log.header.robots.iter().map(|r| &r.id).collect::<Vec<_>>()
+            )));
+        }
+    }
+    let is_unknown = |id: &str| opts.unknown.iter().any(|u| u == id);
+    let mut any_known = false;
+    for r in &log.header.robots {
+        match &r.start {
+            Some(start) if !is_unknown(&r.id) => {
+                let t0 = r.t0.map_or(UNKNOWN_T0, |t| t.max(UNKNOWN_T0));
+                run.add_robot(&r.id, start, t0)?;
+                any_known = true;
+            }
+            _ => run.add_unknown_robot(&r.id)?,
+        }
+    }
+    // Joiners are localized in the map, hence in the frame of the robots with known starts.
+    let shared_frame = any_known && log.header.truth_frame;
+    let mut order: Vec<usize> = (0..log.records.len()).collect();
+    order.sort_by(|&a, &b| record_order(&log.records[a], &log.records[b]));
+    let mut trajectories: std::collections::BTreeMap<String, Vec<TrajectoryPoint>> = run
+        .slam()
+        .robots()
+        .iter()
+        .map(|r| (r.id.clone(), Vec::new()))
+        .collect();
+    for r in run.slam().robots() {
+        if r.last_t > UNKNOWN_T0 {
+            let i = run.slam().robot_index(&r.id).expect("robot just added");
+            let pose = pose_of(run.slam(), which, i);
+            trajectories
+                .entry(r.id.clone())
+                .or_default()
+                .push(TrajectoryPoint { t: r.last_t, pose });
+        }
+    }
+    let mut dropped: std::collections::BTreeMap<String, u64> = Default::default();
+    let mut step_ns = Vec::with_capacity(order.len());
+    let start = Instant::now();
+    let total = order.len();
+    for (k, &i) in order.iter().enumerate() {
+        let rec = &log.records[i];
+        if is_unknown(&rec.robot) && opts.join_at.is_some_and(|t| rec.t < t) {
+            *dropped.entry(rec.robot.clone()).or_insert(0) += 1;
+            continue;
+        }
+        let t0 = Instant::now();
+        let step = run.step(rec)?;
+        step_ns.push(t0.elapsed().as_nanos() as u64);
+        if step.phase == fleetslam_localize::Phase::Mapping {
+            let r = run
+                .slam()
+                .robot_index(&rec.robot)
+                .expect("a mapping robot is in the filter");
+            let pose = pose_of(run.slam(), which, r);
+            trajectories
+                .entry(rec.robot.clone())
+                .or_default()
+                .push(TrajectoryPoint { t: rec.t, pose });
+        }
+        if k % 256 == 0 {
+            progress(k, total);
+        }
+    }
+    progress(total, total);
+    let wall = start.elapsed().as_secs_f64();
+    let mut out = finish(run.slam(), trajectories, step_ns, wall, 0, shared_frame);
+    out.metrics.joiners = run
+        .phases()
+        .into_iter()
+        .filter_map(|p| {
+            p.localization.map(|l| JoinerMetrics {
+                dropped_before_join: dropped.get(&p.id).copied().unwrap_or(0),
+                id: p.id,
+                joined_at: p.joined_at,
+                localization: l,
+            })
+        })
+        .collect();
+    Ok(out)
 }
 
 /// The best particle's landmarks as CSV rows.

@@ -1,0 +1,883 @@
+//! The experiment of the real-time particle filter paper (Kwok, Fox, Meila, section 4),
+//! reproduced in simulation: `fleetslam experiment rtpf`.
+//!
+//! **World.** A rectangular corridor loop ([`LoopWorld`]) lined with identical posts at
+//! irregular places along one half of the loop, repeated on the other half turned by half a
+//! turn: the map is symmetric, every view recurs once, and a few extra posts at unique places
+//! are the only distinguishing features. Observations carry no ids (association by maximum
+//! likelihood), as the paper's robot saw only distances to walls.
+//!
+//! **Robot.** It drives around the loop from a random place (one per seed) at 0.5 m per
+//! record (one record per second), reports noisy odometry, and sees the posts within a few
+//! metres in front of it with range-bearing noise.
+//!
+//! **Prior.** Uniform along the corridor, facing along it in either direction
+//! ([`RtpfExperiment::corridor_prior`]): the free space of the paper's map is its corridors.
+//!
+//! **Policies.** With a fixed sample budget `N` per update, a window of `k` records per
+//! update: `skip`, `naive`, `uniform` and `rtpf` ([`crate::config::Policy`]), and the
+//! baseline that integrates every record with `N` samples (unlimited time).
+//!
+//! **Measures.** The localization error after each update is the weighted mean distance of
+//! the samples from the true position (the paper's "average distance between the samples
+//! and the reference positions"); the localization time of a run is the first time from
+//! which the error stays below a threshold for a hold period (runs that never localize count
+//! at the end time and are reported). Means come with 95% confidence intervals
+//! (`± 1.96 s / √n`, the normal approximation), and the speedup of RTPF over skip is the
+//! ratio of their mean localization times.
+
+use crate::config::{LocalizeConfig, Models, Policy, Window};
+use crate::error::LocalizeError;
+use crate::localizer::Localizer;
+use crate::map::{LandmarkSet, LikelihoodParams, MapLandmark};
+use crate::rtpf::RtpfParams;
+use fleetslam_core::log::{LandmarkObservation, Record};
+use fleetslam_core::motion::{AckermannParams, Motion, MotionModel, MotionNoise};
+use fleetslam_core::pose::{Pose2, wrap_angle};
+use fleetslam_core::rng::stream;
+use fleetslam_core::sensor::{LandmarkKind, SensorNoise, range_bearing_predict};
+use fleetslam_core::updater::LandmarkGaussian;
+use rand::Rng;
+use rand_distr::StandardNormal;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::f64::consts::FRAC_PI_2;
+use std::fmt::Write as _;
+use std::path::Path;
+
+/// The simulated corridor loop.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LoopWorld {
+    /// Length of the loop's long sides (centre line) [m]. Default 24.
+    pub length: f64,
+    /// Length of the short sides [m]. Default 12.
+    pub width: f64,
+    /// Mean spacing of the posts along the loop [m]. Default 2.
+    pub post_spacing: f64,
+    /// Distance of the walls' posts from the centre line [m]. Default 1.5.
+    pub wall_offset: f64,
+    /// Distinguishing posts, placed at unique places. Default 3.
+    pub features: usize,
+    /// Distance travelled per record [m]. Default 0.5 (the paper's 50 cm).
+    pub step: f64,
+    /// Sensor range [m]. Default 3.5.
+    pub max_range: f64,
+    /// Sensor field of view [rad]. Default π (the half plane ahead).
+    pub fov: f64,
+    /// Probability that a post in view is detected. Default 0.9.
+    pub detection: f64,
+}
+
+impl Default for LoopWorld {
+    fn default() -> Self {
+        Self {
+            length: 24.0,
+            width: 12.0,
+            post_spacing: 2.0,
+            wall_offset: 1.5,
+            features: 3,
+            step: 0.5,
+            max_range: 3.5,
+            fov: std::f64::consts::PI,
+            detection: 0.9,
+        }
+    }
+}
+
+/// The robot's sensor noise in the experiment.
+pub const SENSOR_NOISE: SensorNoise = SensorNoise {
+    range: 0.1,
+    bearing: 0.05,
+    xyz: [0.05; 3],
+};
+
+/// One simulated run: the map, the records and the true pose after each record.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LoopRun {
+    pub map: LandmarkSet,
+    pub records: Vec<Record>,
+    pub truth: Vec<Pose2>,
+}
+
+impl LoopWorld {
+    /// The perimeter of the centre line [m].
+    pub fn perimeter(&self) -> f64 {
+        2.0 * (self.length + self.width)
+    }
+
+    /// The point at arc length `s` along the centre line (counter-clockwise from the origin)
+    /// and the heading of the side it is on.
+    fn along(&self, s: f64) -> (f64, f64, f64) {
+        let s = s.rem_euclid(self.perimeter());
+        let (l, w) = (self.length, self.width);
+        if s < l {
+            (s, 0.0, 0.0)
+        } else if s < l + w {
+            (l, s - l, FRAC_PI_2)
+        } else if s < 2.0 * l + w {
+            (l - (s - l - w), w, std::f64::consts::PI)
+        } else {
+            (0.0, w - (s - 2.0 * l - w), -FRAC_PI_2)
+        }
+    }
+
+    /// The posts: along the first half of the loop, at irregular spacings (between 0.5 and
+    /// 1.5 times `post_spacing`, from a fixed seed) on either wall; the second half is the
+    /// first turned by half a turn about the loop's centre, so that the map is symmetric
+    /// and every view of one half recurs in the other. The distinguishing posts sit at
+    /// unique places, half-way to the inner wall.
+    pub fn map(&self) -> LandmarkSet {
+        let mut lms = Vec::new();
+        let cov = [1e-4, 0.0, 0.0, 1e-4, 0.0, 1e-4];
+        let post = |x: f64, y: f64| MapLandmark {
+            id: None,
+            gaussian: LandmarkGaussian {
+                mean: [x, y, 0.0],
+                cov,
+            },
+        };
+        let mut rng = stream(0x5EED_10CA, 0, 0);
+        let half = 0.5 * self.perimeter();
+        let mut s = rng.random::<f64>() * self.post_spacing;
+        while s < half {
+            let (x, y, th) = self.along(s);
+            let side = if rng.random::<bool>() { 1.0 } else { -1.0 };
+            let (px, py) = (
+                x - side * self.wall_offset * th.sin(),
+                y + side * self.wall_offset * th.cos(),
+            );
+            lms.push(post(px, py));
+            lms.push(post(self.length - px, self.width - py));
+            s += self.post_spacing * (0.5 + rng.random::<f64>());
+        }
+        for f in 0..self.features {
+            let frac = [0.35, 0.6, 0.9, 0.15, 0.7][f % 5] + 0.01 * (f / 5) as f64;
+            let (x, y, th) = self.along(frac * self.perimeter());
+            let off = 0.5 * self.wall_offset;
+            lms.push(post(x - off * th.sin(), y + off * th.cos()));
+        }
+        LandmarkSet {
+            kind: LandmarkKind::RangeBearing2d,
+            landmarks: lms,
+        }
+    }
+
+    /// Simulates `records` records from a start chosen by `seed`. The robot follows the
+    /// centre line (forward `step` per record, a quarter turn in place at each corner); its
+    /// odometry reports each increment with noise drawn from `noise`.
+    pub fn simulate(&self, seed: u64, records: usize, noise: &MotionNoise) -> LoopRun {
+        let map = self.map();
+        let mut rng = stream(seed, 0, 0x51A1);
+        let steps_per_side_l = (self.length / self.step).round() as usize;
+        let steps_per_side_w = (self.width / self.step).round() as usize;
+        let sides = [
+            steps_per_side_l,
+            steps_per_side_w,
+            steps_per_side_l,
+            steps_per_side_w,
+        ];
+        // Start at a random step of a random side.
+        let mut side = rng.random_range(0..4usize);
+        let mut done = rng.random_range(0..sides[side]);
+        let s0 = sides[..side].iter().sum::<usize>() as f64 * self.step + done as f64 * self.step;
+        let (x, y, th) = self.along(s0);
+        let mut truth_pose = Pose2::new(x, y, th);
+        let mut out = LoopRun {
+            map: map.clone(),
+            records: Vec::with_capacity(records),
+            truth: Vec::with_capacity(records),
+        };
+        for r in 0..records {
+            let inc = if done >= sides[side] {
+                side = (side + 1) % 4;
+                done = 0;
+                Pose2::new(0.0, 0.0, FRAC_PI_2)
+            } else {
+                done += 1;
+                Pose2::new(self.step, 0.0, 0.0)
+            };
+            truth_pose = truth_pose.compose(&inc);
+            let var = noise.variances(&inc, 1.0);
+            let odo: [f64; 3] = std::array::from_fn(|i| {
+                [inc.x, inc.y, inc.theta][i] + var[i].sqrt() * rng.sample::<f64, _>(StandardNormal)
+            });
+            let mut landmarks = Vec::new();
+            for l in &map.landmarks {
+                let Some((z, _, _)) =
+                    range_bearing_predict(&truth_pose, l.gaussian.mean[0], l.gaussian.mean[1])
+                else {
+                    continue;
+                };
+                if z[0] > self.max_range || z[1].abs() > 0.5 * self.fov {
+                    continue;
+                }
+                if rng.random::<f64>() > self.detection {
+                    continue;
+                }
+                let range =
+                    (z[0] + SENSOR_NOISE.range * rng.sample::<f64, _>(StandardNormal)).max(0.01);
+                let bearing =
+                    wrap_angle(z[1] + SENSOR_NOISE.bearing * rng.sample::<f64, _>(StandardNormal));
+                landmarks.push(LandmarkObservation {
+                    id: None,
+                    z: vec![range, bearing],
+                });
+            }
+            out.records.push(Record {
+                robot: "r".into(),
+                seq: r as u64,
+                t: (r + 1) as f64,
+                motion: Some(Motion::Odometry(odo)),
+                landmarks,
+                robots: Vec::new(),
+            });
+            out.truth.push(truth_pose);
+        }
+        out
+    }
+}
+
+/// The experiment's settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RtpfExperiment {
+    pub world: LoopWorld,
+    /// Window sizes. Default 2 to 14.
+    pub windows: Vec<usize>,
+    /// Policies besides the baseline. Default all four.
+    pub policies: Vec<Policy>,
+    /// Seeds (runs per policy and window). Default 30.
+    pub seeds: usize,
+    /// Sample budget per update. Default 3000.
+    pub samples: usize,
+    /// Records per run (one per second). Default 300 (about two laps).
+    pub records: usize,
+    /// Localization error threshold [m]. Default 1.0.
+    pub threshold: f64,
+    /// The error must stay below the threshold this long [s]. Default 20.
+    pub hold_seconds: f64,
+    /// Odometry noise of the simulated robot (and of the filter).
+    pub motion_noise: MotionNoise,
+    /// RTPF's mixture-weight optimisation.
+    pub rtpf: RtpfParams,
+    /// The localizer's `resample_threshold` (one-record and skip updates). Default 0.5;
+    /// 1.0 resamples at every update, as the paper's filters do.
+    pub resample_threshold: f64,
+}
+
+impl Default for RtpfExperiment {
+    fn default() -> Self {
+        Self {
+            world: LoopWorld::default(),
+            windows: (2..=14).collect(),
+            policies: Policy::ALL.to_vec(),
+            seeds: 30,
+            samples: 3000,
+            records: 300,
+            threshold: 1.0,
+            hold_seconds: 20.0,
+            motion_noise: MotionNoise {
+                trans_per_m: 0.1,
+                lateral_per_m: 0.05,
+                rot_per_rad: 0.05,
+                rot_per_m: 0.05,
+                trans_per_sqrt_s: 0.01,
+                rot_per_sqrt_s: 0.01,
+            },
+            rtpf: RtpfParams::default(),
+            resample_threshold: 0.5,
+        }
+    }
+}
+
+/// The result of one run.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunResult {
+    /// "baseline" or a policy's name.
+    pub policy: String,
+    /// Window size (1 for the baseline).
+    pub window: usize,
+    pub seed: u64,
+    /// Error [m] at each second 1..=records (the latest update's).
+    pub error: Vec<f64>,
+    /// Localization time [s]; `None` if the run never localized.
+    pub time: Option<f64>,
+    pub skipped: u64,
+    pub integrated: u64,
+    pub likelihood_evals: u64,
+    pub gradient_evals: u64,
+}
+
+/// Mean and 95% confidence half-width (normal approximation).
+pub fn mean_ci(xs: &[f64]) -> (f64, f64) {
+    let n = xs.len() as f64;
+    if xs.is_empty() {
+        return (f64::NAN, f64::NAN);
+    }
+    let m = xs.iter().sum::<f64>() / n;
+    if xs.len() < 2 {
+        return (m, 0.0);
+    }
+    let var = xs.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0);
+    (m, 1.96 * (var / n).sqrt())
+}
+
+/// The first time from which `error` (one value per second, from t = 1) stays at or below
+/// `threshold` for `hold` seconds; `None` if never.
+pub fn localization_time(error: &[f64], threshold: f64, hold: f64) -> Option<f64> {
+    let hold = hold.ceil() as usize;
+    let mut run = 0usize;
+    for (i, e) in error.iter().enumerate() {
+        if *e <= threshold {
+            run += 1;
+            if run > hold {
+                return Some((i + 1 - hold) as f64);
+            }
+        } else {
+            run = 0;
+        }
+    }
+    None
+}
+
+impl RtpfExperiment {
+    pub fn validate(&self) -> Result<(), LocalizeError> {
+        let bad = |m: String| Err(LocalizeError::Config(m));
+        if self.windows.is_empty() || self.windows.iter().any(|k| !(1..=64).contains(k)) {
+            return bad(format!(
+                "windows must be sizes between 1 and 64, got {:?}",
+                self.windows
+            ));
+        }
+        if self.seeds == 0 || self.records == 0 || self.samples < 2 {
+            return bad("seeds and records must be >= 1 and samples >= 2".into());
+        }
+        if !(self.threshold > 0.0 && self.hold_seconds >= 0.0) {
+            return bad("threshold must be > 0 and hold_seconds >= 0".into());
+        }
+        let w = &self.world;
+        if !(w.length > 0.0 && w.width > 0.0 && w.post_spacing > 0.0 && w.step > 0.0) {
+            return bad("world lengths must be > 0".into());
+        }
+        self.motion_noise.validate().map_err(LocalizeError::Config)
+    }
+
+    fn models(&self) -> Models {
+        Models {
+            landmark_kind: LandmarkKind::RangeBearing2d,
+            motion_model: MotionModel::Odometry,
+            motion_noise: self.motion_noise,
+            ackermann: AckermannParams::default(),
+            sensor_noise: SENSOR_NOISE,
+        }
+    }
+
+    /// The localizer configuration of one run: fixed budget (no KLD), anonymous posts.
+    pub fn localize_config(&self, policy: Policy, window: usize) -> LocalizeConfig {
+        LocalizeConfig {
+            max_samples: self.samples,
+            kld: None,
+            init_margin: 1.0,
+            min_landmarks: 1,
+            likelihood: LikelihoodParams {
+                use_ids: false,
+                ..Default::default()
+            },
+            policy,
+            window: Window::Fixed { k: window },
+            rtpf: self.rtpf,
+            resample_threshold: self.resample_threshold,
+            ..Default::default()
+        }
+    }
+
+    /// The prior of a run: uniform along the corridor (arc length uniform, up to 0.5 m across
+    /// the centre line) with the heading along the corridor in either direction (σ 0.1 rad):
+    /// the robot is known to be in the corridor facing along it, not where nor which way.
+    pub fn corridor_prior(&self, seed: u64) -> Vec<Pose2> {
+        let w = &self.world;
+        (0..self.samples)
+            .map(|i| {
+                let mut rng = stream(seed, 0, 0xC0_0000 + i as u64);
+                let (x, y, th) = w.along(rng.random::<f64>() * w.perimeter());
+                let lat = rng.random_range(-0.5..0.5);
+                let back = if rng.random::<bool>() {
+                    std::f64::consts::PI
+                } else {
+                    0.0
+                };
+                let dth = 0.1 * rng.sample::<f64, _>(StandardNormal);
+                Pose2::new(
+                    x - lat * th.sin(),
+                    y + lat * th.cos(),
+                    wrap_angle(th + back + dth),
+                )
+            })
+            .collect()
+    }
+
+    /// One run.
+    pub fn run_one(
+        &self,
+        sim: &LoopRun,
+        policy: Option<Policy>,
+        window: usize,
+        seed: u64,
+    ) -> Result<RunResult, LocalizeError> {
+        let cfg = self.localize_config(policy.unwrap_or_default(), window);
+        let mut loc = Localizer::new(self.models(), cfg, seed.wrapping_mul(1000) + window as u64)?;
+        loc.initialise_with(self.corridor_prior(seed), 0.0)?;
+        let mut error = Vec::with_capacity(sim.records.len());
+        let mut current = f64::NAN;
+        for r in &sim.records {
+            if let Some(rep) = loc.push(r, &sim.map)? {
+                // The belief is at the window's last record, which is this one.
+                let (poses, w) = loc.posterior();
+                let truth = sim.truth[(rep.t as usize) - 1];
+                current = poses
+                    .iter()
+                    .zip(&w)
+                    .map(|(p, w)| w * p.distance(&truth))
+                    .sum();
+            }
+            error.push(current);
+        }
+        // Before the first update the belief is the uniform prior: its error is large.
+        let first = error
+            .iter()
+            .position(|e| e.is_finite())
+            .unwrap_or(error.len());
+        let fill = error.get(first).copied().unwrap_or(f64::NAN);
+        error.iter_mut().take(first).for_each(|e| *e = fill);
+        let st = loc.stats();
+        Ok(RunResult {
+            policy: policy.map_or("baseline".into(), |p| p.as_str().into()),
+            window,
+            seed,
+            time: localization_time(&error, self.threshold, self.hold_seconds),
+            error,
+            skipped: st.skipped,
+            integrated: st.integrated,
+            likelihood_evals: st.likelihood_evals,
+            gradient_evals: st.gradient_evals,
+        })
+    }
+
+    /// Every run: the baseline once per seed, each policy for each window and seed. Runs go
+    /// in parallel; each is deterministic, so the result does not depend on the threads.
+    pub fn run(
+        &self,
+        progress: impl Fn(usize, usize) + Sync,
+    ) -> Result<Vec<RunResult>, LocalizeError> {
+        self.validate()?;
+        let sims: Vec<LoopRun> = (0..self.seeds as u64)
+            .into_par_iter()
+            .map(|s| self.world.simulate(s, self.records, &self.motion_noise))
+            .collect();
+        let mut jobs: Vec<(Option<Policy>, usize, u64)> =
+            (0..self.seeds as u64).map(|s| (None, 1, s)).collect();
+        for &k in &self.windows {
+            for &p in &self.policies {
+                for s in 0..self.seeds as u64 {
+                    jobs.push((Some(p), k, s));
+                }
+            }
+        }
+        let total = jobs.len();
+        let done = std::sync::atomic::AtomicUsize::new(0);
+        jobs.par_iter()
+            .map(|&(p, k, s)| {
+                let r = self.run_one(&sims[s as usize], p, k, s);
+                let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+                progress(d, total);
+                r
+            })
+            .collect()
+    }
+}
+
+/// Summary of the runs of one policy and window.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Summary {
+    pub policy: String,
+    pub window: usize,
+    pub runs: usize,
+    pub localized: usize,
+    /// Mean localization time [s] (runs that never localized count at the end time).
+    pub time_mean: f64,
+    pub time_ci95: f64,
+    /// Mean error over the whole run [m].
+    pub error_mean: f64,
+    pub skipped_per_run: f64,
+    /// RTPF's gradient overhead: gradient evaluations / sample-set evaluations.
+    pub gradient_overhead: f64,
+}
+
+/// Summaries per (policy, window), the baseline first.
+pub fn summarize(results: &[RunResult], end_time: f64) -> Vec<Summary> {
+    let mut keys: Vec<(String, usize)> = Vec::new();
+    for r in results {
+        let k = (r.policy.clone(), r.window);
+        if !keys.contains(&k) {
+            keys.push(k);
+        }
+    }
+    keys.iter()
+        .map(|(p, k)| {
+            let rs: Vec<&RunResult> = results
+                .iter()
+                .filter(|r| &r.policy == p && r.window == *k)
+                .collect();
+            let times: Vec<f64> = rs.iter().map(|r| r.time.unwrap_or(end_time)).collect();
+            let (tm, tc) = mean_ci(&times);
+            let errs: Vec<f64> = rs
+                .iter()
+                .map(|r| r.error.iter().sum::<f64>() / r.error.len().max(1) as f64)
+                .collect();
+            let evals: u64 = rs.iter().map(|r| r.likelihood_evals).sum();
+            let grad: u64 = rs.iter().map(|r| r.gradient_evals).sum();
+            Summary {
+                policy: p.clone(),
+                window: *k,
+                runs: rs.len(),
+                localized: rs.iter().filter(|r| r.time.is_some()).count(),
+                time_mean: tm,
+                time_ci95: tc,
+                error_mean: mean_ci(&errs).0,
+                skipped_per_run: rs.iter().map(|r| r.skipped as f64).sum::<f64>()
+                    / rs.len().max(1) as f64,
+                gradient_overhead: if evals > 0 {
+                    grad as f64 / evals as f64
+                } else {
+                    0.0
+                },
+            }
+        })
+        .collect()
+}
+
+fn io_err(path: &Path, e: impl std::fmt::Display) -> LocalizeError {
+    LocalizeError::Io {
+        path: path.display().to_string(),
+        message: e.to_string(),
+    }
+}
+
+/// The mean error curve (and its 95% half-width) of one policy and window.
+fn error_curve(results: &[RunResult], policy: &str, window: usize) -> Vec<(f64, f64)> {
+    let rs: Vec<&RunResult> = results
+        .iter()
+        .filter(|r| r.policy == policy && r.window == window)
+        .collect();
+    let len = rs.iter().map(|r| r.error.len()).min().unwrap_or(0);
+    (0..len)
+        .map(|t| mean_ci(&rs.iter().map(|r| r.error[t]).collect::<Vec<_>>()))
+        .collect()
+}
+
+/// Writes `errors.csv` (mean error per second with CI, per policy and window), `times.csv`
+/// (the summaries), `speedup.csv` and `rtpf.png` into `dir`; returns the summaries.
+pub fn write_outputs(
+    exp: &RtpfExperiment,
+    results: &[RunResult],
+    dir: &Path,
+) -> Result<Vec<Summary>, LocalizeError> {
+    std::fs::create_dir_all(dir).map_err(|e| io_err(dir, e))?;
+    let end = exp.records as f64;
+    let sums = summarize(results, end);
+    let mut keys: Vec<(String, usize)> =
+        sums.iter().map(|s| (s.policy.clone(), s.window)).collect();
+    keys.dedup();
+
+    let mut errors = String::from("policy,window,t,error_mean,error_ci95\n");
+    for (p, k) in &keys {
+        for (t, (m, c)) in error_curve(results, p, *k).iter().enumerate() {
+            writeln!(errors, "{p},{k},{},{m:.4},{c:.4}", t + 1).expect("writing to a String");
+        }
+    }
+    let path = dir.join("errors.csv");
+    std::fs::write(&path, errors).map_err(|e| io_err(&path, e))?;
+
+    let mut times = String::from(
+        "policy,window,runs,localized,time_mean_s,time_ci95_s,error_mean_m,skipped_per_run,gradient_overhead\n",
+    );
+    for s in &sums {
+        writeln!(
+            times,
+            "{},{},{},{},{:.2},{:.2},{:.4},{:.1},{:.4}",
+            s.policy,
+            s.window,
+            s.runs,
+            s.localized,
+            s.time_mean,
+            s.time_ci95,
+            s.error_mean,
+            s.skipped_per_run,
+            s.gradient_overhead
+        )
+        .expect("writing to a String");
+    }
+    let path = dir.join("times.csv");
+    std::fs::write(&path, times).map_err(|e| io_err(&path, e))?;
+
+    let speed = speedups(&sums);
+    let mut sp = String::from("window,skip_time_s,rtpf_time_s,speedup_rtpf_over_skip\n");
+    for (k, s, r, x) in &speed {
+        writeln!(sp, "{k},{s:.2},{r:.2},{x:.3}").expect("writing to a String");
+    }
+    let path = dir.join("speedup.csv");
+    std::fs::write(&path, sp).map_err(|e| io_err(&path, e))?;
+
+    plot(exp, results, &sums, &dir.join("rtpf.png"))?;
+    Ok(sums)
+}
+
+/// (window, skip time, rtpf time, skip / rtpf) for every window with both policies.
+pub fn speedups(sums: &[Summary]) -> Vec<(usize, f64, f64, f64)> {
+    let mut out = Vec::new();
+    for s in sums.iter().filter(|s| s.policy == "skip") {
+        if let Some(r) = sums
+            .iter()
+            .find(|r| r.policy == "rtpf" && r.window == s.window)
+        {
+            out.push((
+                s.window,
+                s.time_mean,
+                r.time_mean,
+                s.time_mean / r.time_mean,
+            ));
+        }
+    }
+    out
+}
+
+/// A markdown table: per window size, each policy's mean localization time ± 95% CI
+/// (localized runs / runs), and RTPF's speedup over skip; the baseline in the first row.
+pub fn markdown_table(sums: &[Summary], end_time: f64) -> String {
+    let mut policies: Vec<String> = Vec::new();
+    for s in sums.iter().filter(|s| s.policy != "baseline") {
+        if !policies.contains(&s.policy) {
+            policies.push(s.policy.clone());
+        }
+    }
+    let cell = |s: &Summary| {
+        format!(
+            "{:.1} ± {:.1} ({}/{})",
+            s.time_mean, s.time_ci95, s.localized, s.runs
+        )
+    };
+    let mut out = String::new();
+    let _ = write!(out, "| window |");
+    for p in &policies {
+        let _ = write!(out, " {p} [s] |");
+    }
+    let _ = writeln!(out, " rtpf speedup over skip |");
+    let _ = write!(out, "|---|");
+    for _ in &policies {
+        let _ = write!(out, "---|");
+    }
+    let _ = writeln!(out, "---|");
+    if let Some(b) = sums.iter().find(|s| s.policy == "baseline") {
+        let _ = writeln!(
+            out,
+            "| 1 (baseline: every record, full budget) | {} |{}",
+            cell(b),
+            " |".repeat(policies.len())
+        );
+    }
+    let speed = speedups(sums);
+    let mut windows: Vec<usize> = sums
+        .iter()
+        .filter(|s| s.policy != "baseline")
+        .map(|s| s.window)
+        .collect();
+    windows.sort_unstable();
+    windows.dedup();
+    for k in windows {
+        let _ = write!(out, "| {k} |");
+        for p in &policies {
+            match sums.iter().find(|s| &s.policy == p && s.window == k) {
+                Some(s) => {
+                    let _ = write!(out, " {} |", cell(s));
+                }
+                None => {
+                    let _ = write!(out, " |");
+                }
+            }
+        }
+        match speed.iter().find(|s| s.0 == k) {
+            Some(s) => {
+                let _ = writeln!(out, " {:.2}x |", s.3);
+            }
+            None => {
+                let _ = writeln!(out, " |");
+            }
+        }
+    }
+    let _ = writeln!(
+        out,
+        "\nTimes in seconds of data (one record per second); a run that never localized counts as {end_time:.0} s."
+    );
+    out
+}
+
+/// DejaVu Sans, compiled in so that plotting needs no system fonts (its licence is in
+/// `assets/DejaVuSans-LICENSE.txt`).
+static FONT: &[u8] = include_bytes!("../assets/DejaVuSans.ttf");
+
+fn plot(
+    exp: &RtpfExperiment,
+    results: &[RunResult],
+    sums: &[Summary],
+    path: &Path,
+) -> Result<(), LocalizeError> {
+    use plotters::prelude::*;
+    let e = |x: &dyn std::fmt::Display| io_err(path, x);
+    plotters::style::register_font("sans-serif", FontStyle::Normal, FONT)
+        .map_err(|_| e(&"the bundled font does not load"))?;
+    let root = BitMapBackend::new(path, (1400, 1000)).into_drawing_area();
+    root.fill(&WHITE).map_err(|x| e(&x))?;
+    let panels = root.split_evenly((2, 2));
+    // Three error panels: small, middle and large window sizes of those run.
+    let mut ws = exp.windows.clone();
+    ws.sort_unstable();
+    let picks = [ws[0], ws[ws.len() / 2], ws[ws.len() - 1]];
+    let colors = [BLACK, RED, BLUE, GREEN, MAGENTA];
+    let names: Vec<String> = std::iter::once("baseline".to_string())
+        .chain(exp.policies.iter().map(|p| p.as_str().to_string()))
+        .collect();
+    let ymax = results
+        .iter()
+        .flat_map(|r| r.error.iter())
+        .fold(0.0f64, |a, b| a.max(*b))
+        .clamp(1.0, 20.0);
+    for (panel, &k) in panels.iter().take(3).zip(&picks) {
+        let mut chart = ChartBuilder::on(panel)
+            .caption(
+                format!("Localization error, window size {k}"),
+                ("sans-serif", 22),
+            )
+            .margin(10)
+            .x_label_area_size(35)
+            .y_label_area_size(50)
+            .build_cartesian_2d(0f64..exp.records as f64, 0f64..ymax)
+            .map_err(|x| e(&x))?;
+        chart
+            .configure_mesh()
+            .x_desc("time [s]")
+            .y_desc("error [m]")
+            .draw()
+            .map_err(|x| e(&x))?;
+        for (ci, name) in names.iter().enumerate() {
+            let win = if name == "baseline" { 1 } else { k };
+            let curve = error_curve(results, name, win);
+            if curve.is_empty() {
+                continue;
+            }
+            let col = colors[ci % colors.len()];
+            chart
+                .draw_series(LineSeries::new(
+                    curve
+                        .iter()
+                        .enumerate()
+                        .map(|(t, (m, _))| ((t + 1) as f64, *m)),
+                    col.stroke_width(2),
+                ))
+                .map_err(|x| e(&x))?
+                .label(name.as_str())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], col));
+            // 95% band as thin lines every 10 s.
+            chart
+                .draw_series(curve.iter().enumerate().step_by(10).map(|(t, (m, c))| {
+                    PathElement::new(
+                        vec![((t + 1) as f64, (m - c).max(0.0)), ((t + 1) as f64, m + c)],
+                        col.mix(0.6),
+                    )
+                }))
+                .map_err(|x| e(&x))?;
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|x| e(&x))?;
+    }
+    let speed = speedups(sums);
+    let smax = speed.iter().map(|s| s.3).fold(1.0f64, f64::max) * 1.2;
+    let kmax = ws[ws.len() - 1] as f64 + 1.0;
+    let mut chart = ChartBuilder::on(&panels[3])
+        .caption("Speedup of RTPF over skip", ("sans-serif", 22))
+        .margin(10)
+        .x_label_area_size(35)
+        .y_label_area_size(50)
+        .build_cartesian_2d(0f64..kmax, 0f64..smax)
+        .map_err(|x| e(&x))?;
+    chart
+        .configure_mesh()
+        .x_desc("window size")
+        .y_desc("skip time / rtpf time")
+        .draw()
+        .map_err(|x| e(&x))?;
+    chart
+        .draw_series(LineSeries::new(
+            speed.iter().map(|s| (s.0 as f64, s.3)),
+            BLUE.stroke_width(2),
+        ))
+        .map_err(|x| e(&x))?;
+    chart
+        .draw_series(
+            speed
+                .iter()
+                .map(|s| Circle::new((s.0 as f64, s.3), 4, BLUE.filled())),
+        )
+        .map_err(|x| e(&x))?;
+    chart
+        .draw_series(LineSeries::new([(0.0, 1.0), (kmax, 1.0)], BLACK.mix(0.5)))
+        .map_err(|x| e(&x))?;
+    root.present().map_err(|x| e(&x))?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn loop_world_is_symmetric_and_the_robot_stays_on_it() {
+        let w = LoopWorld::default();
+        let map = w.map();
+        // Symmetric pairs, plus the distinguishing posts.
+        assert_eq!((map.len() - 3) % 2, 0);
+        assert!(map.len() > 30, "{} posts", map.len());
+        for pair in map.landmarks[..map.len() - 3].chunks(2) {
+            let (a, b) = (pair[0].gaussian.mean, pair[1].gaussian.mean);
+            assert!((a[0] + b[0] - 24.0).abs() < 1e-9 && (a[1] + b[1] - 12.0).abs() < 1e-9);
+        }
+        let run = w.simulate(3, 200, &RtpfExperiment::default().motion_noise);
+        assert_eq!(run.records.len(), 200);
+        let seen = run
+            .records
+            .iter()
+            .filter(|r| !r.landmarks.is_empty())
+            .count();
+        assert!(seen > 150, "{seen} records see posts");
+        // The robot follows the loop.
+        let far = run
+            .truth
+            .iter()
+            .filter(|p| p.x < -1e-6 || p.x > 24.0 + 1e-6 || p.y < -1e-6 || p.y > 12.0 + 1e-6)
+            .count();
+        assert_eq!(far, 0);
+    }
+
+    #[test]
+    fn localization_time_needs_the_hold() {
+        let e = [5.0, 0.5, 0.5, 3.0, 0.5, 0.5, 0.5, 0.5];
+        assert_eq!(localization_time(&e, 1.0, 2.0), Some(5.0));
+        assert_eq!(localization_time(&e, 1.0, 5.0), None);
+        let (m, c) = mean_ci(&[1.0, 3.0]);
+        assert!((m - 2.0).abs() < 1e-12 && c > 0.0);
+    }
+}

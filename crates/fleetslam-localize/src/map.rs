@@ -1,0 +1,395 @@
+//! The fixed landmark map a robot is localized in, and the observation likelihood.
+//!
+//! A map is a list of landmark Gaussians (mean and covariance, as FastSLAM's per-landmark
+//! EKFs leave them) with their ids when the run associates by id. The likelihood of one
+//! measurement `z` from pose `x` integrates the landmark's uncertainty: with `ẑ = h(x, μ)`,
+//! `H_m = ∂h/∂m` and the sensor noise `Q`,
+//!
+//! ```text
+//! p(z | x, m) = N(z; ẑ, S),   S = H_m Σ H_mᵀ + Q
+//! ```
+//!
+//! the same marginal that FastSLAM uses to weigh a particle (Montemerlo et al. 2002, eq. for
+//! the importance weight; the Rao-Blackwellized notes in `shared/papers`). Observations without a
+//! usable id are associated by maximum likelihood over the map's landmarks (the most likely
+//! landmark's term is used). A flat tail beyond the squared Mahalanobis distance
+//! `outlier_mahalanobis2` keeps one unexplained reading from annihilating a sample: the
+//! robust mixture of Monte Carlo localization, where a measurement that no map feature
+//! explains has a small constant probability (Thrun, Burgard, Fox, ch. 6, the `z_rand` term).
+
+use crate::error::LocalizeError;
+use fleetslam_core::filter::{Estimate, FastSlam};
+use fleetslam_core::log::LandmarkObservation;
+use fleetslam_core::pose::{Pose2, wrap_angle};
+use fleetslam_core::sensor::{LandmarkKind, SensorNoise, point3_predict, range_bearing_predict};
+use fleetslam_core::updater::LandmarkGaussian;
+use nalgebra::{Matrix2, Matrix3, Vector2, Vector3};
+use serde::{Deserialize, Serialize};
+
+const LN_2PI: f64 = 1.837_877_066_409_345_3;
+
+/// One landmark of a fixed map.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MapLandmark {
+    /// The landmark's id when observations carry ids.
+    pub id: Option<u32>,
+    pub gaussian: LandmarkGaussian,
+}
+
+/// A fixed landmark map of one kind.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LandmarkSet {
+    pub kind: LandmarkKind,
+    pub landmarks: Vec<MapLandmark>,
+}
+
+/// The rectangle a map covers: the landmarks' bounding box grown by a margin.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Extent {
+    pub min: [f64; 2],
+    pub max: [f64; 2],
+}
+
+impl LandmarkSet {
+    /// Checks that every landmark is finite with a positive semi-definite covariance.
+    pub fn new(kind: LandmarkKind, landmarks: Vec<MapLandmark>) -> Result<Self, LocalizeError> {
+        for (i, l) in landmarks.iter().enumerate() {
+            if !l.gaussian.is_finite() {
+                return Err(LocalizeError::Map(format!(
+                    "landmark {i} has a non-finite number"
+                )));
+            }
+            let c = &l.gaussian.cov;
+            if c[0] < 0.0 || c[3] < 0.0 || c[5] < 0.0 || c[0] * c[3] - c[1] * c[1] < -1e-12 {
+                return Err(LocalizeError::Map(format!(
+                    "landmark {i}'s covariance is not positive semi-definite: {c:?}"
+                )));
+            }
+        }
+        Ok(Self { kind, landmarks })
+    }
+
+    /// The landmarks of the SLAM filter's best particle (the run's current best map).
+    pub fn from_best_particle(slam: &FastSlam) -> Self {
+        let best = &slam.particles()[slam.best_index()];
+        Self {
+            kind: slam.config().landmark_kind,
+            landmarks: best
+                .map
+                .iter()
+                .map(|(_, l)| MapLandmark {
+                    id: l.id,
+                    gaussian: l.gaussian,
+                })
+                .collect(),
+        }
+    }
+
+    /// The landmarks of an estimate (a finished run's final map, as the API returns it).
+    pub fn from_estimate(kind: LandmarkKind, est: &Estimate) -> Result<Self, LocalizeError> {
+        Self::new(
+            kind,
+            est.landmarks
+                .iter()
+                .map(|l| MapLandmark {
+                    id: l.id,
+                    gaussian: l.gaussian,
+                })
+                .collect(),
+        )
+    }
+
+    pub fn len(&self) -> usize {
+        self.landmarks.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.landmarks.is_empty()
+    }
+
+    /// The landmarks' bounding box grown by `margin` metres on every side; `None` for an
+    /// empty map.
+    pub fn extent(&self, margin: f64) -> Option<Extent> {
+        let first = self.landmarks.first()?;
+        let mut min = [first.gaussian.mean[0], first.gaussian.mean[1]];
+        let mut max = min;
+        for l in &self.landmarks {
+            for a in 0..2 {
+                min[a] = min[a].min(l.gaussian.mean[a]);
+                max[a] = max[a].max(l.gaussian.mean[a]);
+            }
+        }
+        Some(Extent {
+            min: [min[0] - margin, min[1] - margin],
+            max: [max[0] + margin, max[1] + margin],
+        })
+    }
+
+    /// The index of the landmark with this id.
+    pub fn find_id(&self, id: u32) -> Option<usize> {
+        self.landmarks.iter().position(|l| l.id == Some(id))
+    }
+}
+
+/// How observations are scored against a fixed map.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LikelihoodParams {
+    /// Use the ids observations carry (when the map has them). Default true. False treats
+    /// every observation as anonymous (maximum-likelihood association).
+    pub use_ids: bool,
+    /// Factor on the sensor noise's standard deviations. Default 2.0. A particle filter
+    /// represents a peaked likelihood poorly: with samples spread over a whole map, few or
+    /// none fall inside a narrow likelihood peak, and the filter can settle on a wrong pose.
+    /// Overestimating the noise smooths the likelihood (Thrun, Burgard, Fox, Probabilistic
+    /// Robotics, section 6.3, and the Monte Carlo localization notes). 1 uses the run's
+    /// noise as is.
+    pub noise_scale: f64,
+    /// Squared Mahalanobis distance at which a reading's likelihood stops falling (it is
+    /// floored at the sensor-noise Gaussian's value there). Default 16 (4 sigma). Lower
+    /// tolerates more unexplained readings and localizes more slowly; higher trusts the
+    /// map more (one unexplained reading then nearly kills a sample). Finite.
+    pub outlier_mahalanobis2: f64,
+}
+
+impl Default for LikelihoodParams {
+    fn default() -> Self {
+        Self {
+            use_ids: true,
+            noise_scale: 2.0,
+            outlier_mahalanobis2: 16.0,
+        }
+    }
+}
+
+/// The measurement noise matrix and the map, ready to score poses.
+#[derive(Debug, Clone)]
+pub struct Scorer<'a> {
+    map: &'a LandmarkSet,
+    q2: Matrix2<f64>,
+    q3: Matrix3<f64>,
+    params: LikelihoodParams,
+}
+
+/// One observation resolved against the map: the landmark when its id is known.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ResolvedObs {
+    pub z: [f64; 3],
+    /// `Some(i)`: landmark `i` of the map; `None`: maximum likelihood over the map.
+    pub landmark: Option<usize>,
+}
+
+impl<'a> Scorer<'a> {
+    pub fn new(map: &'a LandmarkSet, noise: &SensorNoise, params: LikelihoodParams) -> Self {
+        let s2 = params.noise_scale * params.noise_scale;
+        Self {
+            map,
+            q2: noise.q2() * s2,
+            q3: noise.q3() * s2,
+            params,
+        }
+    }
+
+    pub fn map(&self) -> &LandmarkSet {
+        self.map
+    }
+
+    /// Resolves a record's observations. Observations whose id the map does not hold are
+    /// left out (the landmark is not mapped yet) and counted in the second value.
+    pub fn resolve(&self, obs: &[LandmarkObservation]) -> (Vec<ResolvedObs>, usize) {
+        let mut out = Vec::with_capacity(obs.len());
+        let mut unmatched = 0;
+        for o in obs {
+            let mut z = [0.0; 3];
+            let n = o.z.len().min(3);
+            z[..n].copy_from_slice(&o.z[..n]);
+            let landmark = match (self.params.use_ids, o.id) {
+                (true, Some(id)) => match self.map.find_id(id) {
+                    Some(i) => Some(i),
+                    None => {
+                        unmatched += 1;
+                        continue;
+                    }
+                },
+                _ => None,
+            };
+            out.push(ResolvedObs { z, landmark });
+        }
+        (out, unmatched)
+    }
+
+    /// `log N(z; h(x, μ), H_m Σ H_mᵀ + Q)`, or `None` when it is certainly below the
+    /// floor (the squared Mahalanobis distance is at least `outlier_mahalanobis2`, checked
+    /// first on the range or point distance alone, which bounds it from below: for any
+    /// positive-definite `S`, `νᵀS⁻¹ν ≥ νᵢ² / Sᵢᵢ`), when the landmark sits on the robot (no
+    /// bearing) or when the covariance is degenerate.
+    #[inline]
+    fn landmark_ll(&self, pose: &Pose2, z: &[f64; 3], l: &LandmarkGaussian) -> Option<f64> {
+        let bound = self.params.outlier_mahalanobis2;
+        let tr = l.cov[0] + l.cov[3] + l.cov[5];
+        let (m2, logdet, dim) = match self.map.kind {
+            LandmarkKind::RangeBearing2d => {
+                let r = (l.mean[0] - pose.x).hypot(l.mean[1] - pose.y);
+                let nr = z[0] - r;
+                if nr * nr > bound * (tr + self.q2[(0, 0)]) {
+                    return None;
+                }
+                let (zhat, hm, _) = range_bearing_predict(pose, l.mean[0], l.mean[1])?;
+                let s = hm * l.cov2() * hm.transpose() + self.q2;
+                let det = s[(0, 0)] * s[(1, 1)] - s[(0, 1)] * s[(1, 0)];
+                if !(det > 0.0 && det.is_finite()) {
+                    return None;
+                }
+                let nu = Vector2::new(z[0] - zhat[0], wrap_angle(z[1] - zhat[1]));
+                let inv = Matrix2::new(s[(1, 1)], -s[(0, 1)], -s[(1, 0)], s[(0, 0)]) / det;
+                (nu.dot(&(inv * nu)), det.ln(), 2.0)
+            }
+            LandmarkKind::Point3d => {
+                let (zhat, hm, _) = point3_predict(pose, &l.mean);
+                let nu = Vector3::new(z[0] - zhat[0], z[1] - zhat[1], z[2] - zhat[2]);
+                let qmax = self.q3[(0, 0)].max(self.q3[(1, 1)]).max(self.q3[(2, 2)]);
+                if nu.norm_squared() > bound * (tr + qmax) {
+                    return None;
+                }
+                let s = hm * l.cov3() * hm.transpose() + self.q3;
+                let c = s.cholesky()?;
+                let det = c.determinant();
+                if !(det > 0.0 && det.is_finite()) {
+                    return None;
+                }
+                (nu.dot(&c.solve(&nu)), det.ln(), 3.0)
+            }
+        };
+        Some(-0.5 * m2 - 0.5 * (dim * LN_2PI + logdet))
+    }
+
+    /// The log-likelihood of one resolved observation from `pose`: `max(log N(z; ẑ, S), f)`
+    /// with `f` the [floor](Self::floor); over the map's landmarks (their maximum) when the
+    /// id is unknown. Since `det S ≥ det Q`, a landmark whose Mahalanobis distance exceeds
+    /// the outlier bound is below the floor, so skipping it changes nothing.
+    #[inline]
+    pub fn obs_ll(&self, pose: &Pose2, o: &ResolvedObs) -> f64 {
+        let floor = self.floor();
+        let best = match o.landmark {
+            Some(i) => self.landmark_ll(pose, &o.z, &self.map.landmarks[i].gaussian),
+            None => self
+                .map
+                .landmarks
+                .iter()
+                .filter_map(|l| self.landmark_ll(pose, &o.z, &l.gaussian))
+                .reduce(f64::max),
+        };
+        best.map_or(floor, |b| b.max(floor))
+    }
+
+    /// The log-likelihood of all of a record's observations (independent given the pose).
+    #[inline]
+    pub fn record_ll(&self, pose: &Pose2, obs: &[ResolvedObs]) -> f64 {
+        obs.iter().map(|o| self.obs_ll(pose, o)).sum()
+    }
+
+    /// The constant a reading gets when no landmark explains it: the Gaussian of the sensor
+    /// noise alone at the outlier boundary, `-b/2 - (d ln 2π + ln det Q)/2`.
+    pub fn floor(&self) -> f64 {
+        let (dim, logdet) = match self.map.kind {
+            LandmarkKind::RangeBearing2d => (2.0, self.q2.determinant().ln()),
+            LandmarkKind::Point3d => (3.0, self.q3.determinant().ln()),
+        };
+        -0.5 * self.params.outlier_mahalanobis2 - 0.5 * (dim * LN_2PI + logdet)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn one(kind: LandmarkKind, mean: [f64; 3]) -> LandmarkSet {
+        LandmarkSet::new(
+            kind,
+            vec![MapLandmark {
+                id: Some(4),
+                gaussian: LandmarkGaussian {
+                    mean,
+                    cov: [0.01, 0.0, 0.0, 0.01, 0.0, 0.01],
+                },
+            }],
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn likelihood_peaks_at_the_true_pose_and_integrates_landmark_covariance() {
+        let map = one(LandmarkKind::RangeBearing2d, [2.0, 0.0, 0.0]);
+        let exact = LikelihoodParams {
+            noise_scale: 1.0,
+            ..Default::default()
+        };
+        let s = Scorer::new(&map, &SensorNoise::default(), exact);
+        let obs = [LandmarkObservation {
+            id: Some(4),
+            z: vec![2.0, 0.0],
+        }];
+        let (r, un) = s.resolve(&obs);
+        assert_eq!((r.len(), un), (1, 0));
+        let at = s.record_ll(&Pose2::new(0.0, 0.0, 0.0), &r);
+        let off = s.record_ll(&Pose2::new(1.0, 0.0, 0.0), &r);
+        assert!(at > off + 1.0, "{at} {off}");
+        // 1 m off is beyond the outlier bound: the floor.
+        assert_eq!(off, s.floor());
+        // A vaguer landmark gives a flatter likelihood: lower peak, higher tail.
+        let mut vague = map.clone();
+        vague.landmarks[0].gaussian.cov = [1.0, 0.0, 0.0, 1.0, 0.0, 1.0];
+        let sv = Scorer::new(&vague, &SensorNoise::default(), exact);
+        assert!(sv.record_ll(&Pose2::default(), &r) < at);
+        assert!(sv.record_ll(&Pose2::new(1.0, 0.0, 0.0), &r) > off);
+    }
+
+    #[test]
+    fn unknown_ids_take_the_most_likely_landmark_and_missing_ids_are_counted() {
+        let mut map = one(LandmarkKind::Point3d, [1.0, 0.0, 0.5]);
+        map.landmarks.push(MapLandmark {
+            id: Some(9),
+            gaussian: LandmarkGaussian {
+                mean: [0.0, 1.0, 0.5],
+                cov: [0.01, 0.0, 0.0, 0.01, 0.0, 0.01],
+            },
+        });
+        let s = Scorer::new(&map, &SensorNoise::default(), LikelihoodParams::default());
+        let obs = [
+            LandmarkObservation {
+                id: None,
+                z: vec![0.0, 1.0, 0.5],
+            },
+            LandmarkObservation {
+                id: Some(77),
+                z: vec![1.0, 0.0, 0.5],
+            },
+        ];
+        let (r, un) = s.resolve(&obs);
+        assert_eq!((r.len(), un), (1, 1));
+        let ml = s.record_ll(&Pose2::default(), &r);
+        let by_id = s.obs_ll(
+            &Pose2::default(),
+            &ResolvedObs {
+                z: [0.0, 1.0, 0.5],
+                landmark: Some(1),
+            },
+        );
+        assert_eq!(ml, by_id);
+    }
+
+    #[test]
+    fn bad_maps_are_refused() {
+        let mut m = one(LandmarkKind::RangeBearing2d, [0.0, 0.0, 0.0]);
+        m.landmarks[0].gaussian.mean[0] = f64::NAN;
+        assert!(LandmarkSet::new(m.kind, m.landmarks.clone()).is_err());
+        m.landmarks[0].gaussian.mean[0] = 0.0;
+        m.landmarks[0].gaussian.cov[0] = -1.0;
+        assert!(LandmarkSet::new(m.kind, m.landmarks).is_err());
+        let e = one(LandmarkKind::RangeBearing2d, [1.0, 2.0, 0.0])
+            .extent(1.0)
+            .unwrap();
+        assert_eq!(e.min, [0.0, 1.0]);
+        assert_eq!(e.max, [2.0, 3.0]);
+    }
+}

@@ -323,9 +323,9 @@ pub async fn state_at(
             filter
                 .step(r)
                 .map_err(|e| ApiError::internal(anyhow::anyhow!("replaying: {e}")))?;
-            trajectories
-                .get_mut(&r.robot)
-                .map(|v| v.push(trajectory_point(&filter, i, r.t)));
+            if let Some(v) = trajectories.get_mut(&r.robot) {
+                v.push(trajectory_point(&filter, i, r.t));
+            }
             applied += 1;
             applied_t = Some(r.t);
         }

@@ -480,7 +480,12 @@ pub async fn rerun(
     config
         .validate()
         .map_err(|e| ApiError::BadRequest(format!("config: {e}")))?;
-    let filter = history::new_filter(&config)?;
+    // The source's localization settings, from its first snapshot.
+    let localize = match state.store.snapshot_at_or_before_applied(&run, 0).await? {
+        Some(s) => history::RunSnapshot::decode(&s.data)?.filter.localize,
+        None => fleetslam_localize::LocalizeConfig::default(),
+    };
+    let filter = history::new_filter(&config, localize)?;
     let id = uuid::Uuid::new_v4().to_string();
     let name = req
         .name

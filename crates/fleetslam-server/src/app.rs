@@ -13,7 +13,6 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
 use fleetslam_core::config::{FilterConfig, overlay};
-use fleetslam_core::filter::FastSlam;
 use fleetslam_core::log::{LogHeader, Record};
 use fleetslam_core::pose::PoseGaussian;
 use fleetslam_store::{NewRobot, NewRun, RunFilter, Store};
@@ -84,7 +83,7 @@ impl AppState {
         &self,
         id: String,
         config: FilterConfig,
-        filter: FastSlam,
+        filter: fleetslam_localize::LateJoinSlam,
         recovered: Option<coordinator::Recovered>,
         tokens: HashMap<String, String>,
     ) -> Arc<LiveRun> {
@@ -219,6 +218,10 @@ pub struct CreateRun {
     /// Any `FilterConfig` fields, over the header's suggestions.
     #[schema(value_type = Option<Object>)]
     pub config: Option<serde_json::Value>,
+    /// Any `LocalizeConfig` fields: how robots registered at an unknown pose are localized
+    /// (samples, KLD-sampling, convergence, real-time policy).
+    #[schema(value_type = Option<Object>)]
+    pub localize: Option<serde_json::Value>,
 }
 
 #[derive(Debug, Serialize, utoipa::ToSchema)]
@@ -250,7 +253,12 @@ pub(crate) async fn create_run(
     config
         .validate()
         .map_err(|e| ApiError::BadRequest(format!("config: {e}")))?;
-    let filter = history::new_filter(&config)?;
+    let localize = overlay(
+        &fleetslam_localize::LocalizeConfig::default(),
+        req.localize.unwrap_or(serde_json::Value::Null),
+    )
+    .map_err(|e| ApiError::BadRequest(format!("localize: {e}")))?;
+    let filter = history::new_filter(&config, localize)?;
     let id = uuid::Uuid::new_v4().to_string();
     state
         .store
@@ -395,8 +403,9 @@ pub(crate) async fn finish_run(
 #[serde(deny_unknown_fields)]
 pub struct RegisterRobot {
     pub id: String,
-    /// The start pose (mean and covariance), or null/absent when unknown: the robot's records
-    /// are then stored but not merged until it is localized.
+    /// The start pose (mean and covariance), or null/absent when unknown: the robot is then
+    /// localized against the run's map (Monte Carlo localization) and joins the SLAM filter
+    /// once its pose has converged.
     #[schema(value_type = Option<Object>)]
     pub start: Option<PoseGaussian>,
     /// Time of the start pose [s]; default 0.
@@ -408,7 +417,7 @@ pub struct RobotRegistered {
     pub robot: String,
     /// Send as `Authorization: Bearer <token>` when posting as this robot. Shown once.
     pub token: String,
-    /// `mapping` or `unknown_pose`.
+    /// `mapping`, or `localizing` for a robot registered at an unknown pose.
     pub mode: &'static str,
 }
 
@@ -460,7 +469,7 @@ pub(crate) async fn register_robot(
     let mode = if req.start.is_some() {
         "mapping"
     } else {
-        "unknown_pose"
+        "localizing"
     };
     Ok((
         StatusCode::CREATED,

@@ -12,9 +12,10 @@
 use crate::error::ApiError;
 use crate::history::{self, RunMetrics, RunSnapshot, Trajectories};
 use crate::merge::{MergeError, Merger, OrderKey};
-use fleetslam_core::filter::{FastSlam, StepReport};
+use fleetslam_core::filter::StepReport;
 use fleetslam_core::log::Record;
 use fleetslam_core::pose::{Pose2, PoseGaussian};
+use fleetslam_localize::LateJoinSlam;
 use fleetslam_store::{NewObservation, NewSnapshot, Store};
 use serde::Serialize;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
@@ -68,8 +69,9 @@ pub struct RecordAck {
 #[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
 pub struct RobotStatus {
     pub id: String,
-    /// `mapping` (merged into the filter) or `unknown_pose` (stored, not merged until it is
-    /// localized).
+    /// `mapping` (part of the SLAM filter), or, for a robot that joined at an unknown pose,
+    /// `localizing` (localized against the run's best map; its records do not change the
+    /// map) and then `converged` (waiting for its convergence to hold before it joins).
     pub mode: &'static str,
     #[schema(value_type = Option<Object>)]
     pub best: Option<Pose2>,
@@ -291,7 +293,7 @@ pub struct Recovered {
 /// of a run recovered after a restart.
 pub fn spawn(
     id: String,
-    filter: FastSlam,
+    filter: LateJoinSlam,
     store: Store,
     cfg: CoordinatorConfig,
     recovered: Option<Recovered>,
@@ -388,7 +390,7 @@ fn spawn_snapshot_writer(run: String, store: Store) -> mpsc::UnboundedSender<Sna
 struct Coordinator {
     id: String,
     /// Taken while a blocking thread steps it.
-    filter: Option<FastSlam>,
+    filter: Option<LateJoinSlam>,
     store: Store,
     merger: Merger,
     acked: HashMap<String, Acked>,
@@ -538,7 +540,7 @@ impl Coordinator {
             ns.get(((ns.len().max(1) - 1) as f64 * p).round() as usize)
                 .map_or(0.0, |v| *v as f64 / 1e6)
         };
-        let stats = filter.stats();
+        let stats = filter.slam().stats();
         RunMetrics {
             applied: self.applied,
             t_start: self
@@ -559,9 +561,9 @@ impl Coordinator {
             } else {
                 0.0
             },
-            updater: filter.config().updater.clone(),
-            particles: filter.config().particles,
-            seed: filter.config().seed,
+            updater: filter.slam().config().updater.clone(),
+            particles: filter.slam().config().particles,
+            seed: filter.slam().config().seed,
             resamples: stats.resamples,
             landmarks: state.landmarks.len(),
             final_ess: state.ess,
@@ -583,35 +585,36 @@ impl Coordinator {
             .filter
             .as_mut()
             .expect("the filter is home between steps");
-        let merged = match &start {
+        match &start {
             Some(s) => {
                 let i = filter
                     .add_robot(&robot, s, t0)
                     .map_err(|e| ApiError::BadRequest(e.to_string()))?;
-                self.merger.add_robot(&robot, t0, 0, Instant::now());
                 Arc::make_mut(&mut self.trajectories).insert(
                     robot.clone(),
-                    vec![history::trajectory_point(filter, i, t0)],
+                    vec![history::trajectory_point(filter.slam(), i, t0)],
                 );
-                true
             }
-            None => false,
-        };
+            // Localized against the run's map first, then inserted into every particle.
+            None => filter
+                .add_unknown_robot(&robot)
+                .map_err(|e| ApiError::BadRequest(e.to_string()))?,
+        }
+        let mode = filter.phase(&robot).map_or("mapping", |p| p.as_str());
+        // Every robot's records go through the merge, in the one deterministic order.
+        self.merger.add_robot(&robot, t0, 0, Instant::now());
         self.acked.insert(
             robot.clone(),
             Acked {
-                merged,
+                merged: true,
                 ..Default::default()
             },
         );
-        if merged {
-            // A recovery restores robots from snapshots: store one that has this robot
-            // before the registration is answered.
-            let (tx, rx) = oneshot::channel();
-            self.snapshot(Some(tx));
-            rx.await.map_err(ApiError::internal)??;
-        }
-        let mode = if merged { "mapping" } else { "unknown_pose" };
+        // A recovery restores robots from snapshots: store one that has this robot before
+        // the registration is answered.
+        let (tx, rx) = oneshot::channel();
+        self.snapshot(Some(tx));
+        rx.await.map_err(ApiError::internal)??;
         let _ = self.events.send(Event::RobotJoined {
             robot,
             mode: mode.into(),
@@ -758,27 +761,32 @@ impl Coordinator {
             .expect("the filter is home between steps");
         let mut trajectories = std::mem::take(&mut self.trajectories);
         let res = tokio::task::spawn_blocking(move || {
-            let mut reports: Vec<(StepReport, u64)> = Vec::with_capacity(records.len());
+            let mut reports: Vec<(Option<StepReport>, u64)> = Vec::with_capacity(records.len());
             let mut errors = Vec::new();
+            let mut joins = Vec::new();
             let traj = Arc::make_mut(&mut trajectories);
             for r in &records {
                 let t0 = Instant::now();
                 match filter.step(r) {
                     Ok(rep) => {
-                        reports.push((rep, t0.elapsed().as_nanos() as u64));
-                        if let (Some(i), Some(v)) =
-                            (filter.robot_index(&r.robot), traj.get_mut(&r.robot))
-                        {
-                            v.push(history::trajectory_point(&filter, i, r.t));
+                        let ns = t0.elapsed().as_nanos() as u64;
+                        if rep.joined {
+                            joins.push(r.robot.clone());
+                        }
+                        reports.push((rep.slam, ns));
+                        if let Some(i) = filter.slam().robot_index(&r.robot) {
+                            traj.entry(r.robot.clone())
+                                .or_default()
+                                .push(history::trajectory_point(filter.slam(), i, r.t));
                         }
                     }
                     Err(e) => errors.push(format!("record {} of robot {:?}: {e}", r.seq, r.robot)),
                 }
             }
-            (filter, trajectories, reports, errors)
+            (filter, trajectories, reports, errors, joins)
         })
         .await;
-        let (filter, trajectories, reports, errors) = match res {
+        let (filter, trajectories, reports, errors, joins) = match res {
             Ok(v) => v,
             Err(e) => {
                 tracing::error!(run = %self.id, error = %e, "filter step panicked; the run stops");
@@ -792,10 +800,17 @@ impl Coordinator {
             // Records are validated before they are stored; a step error is a bug.
             tracing::error!(run = %self.id, error = %e, "a stored record could not be applied");
         }
+        for robot in joins {
+            let _ = self.events.send(Event::RobotJoined {
+                robot,
+                mode: "mapping".into(),
+            });
+        }
         for (rep, ns) in reports {
             self.applied += 1;
             self.step_ns.push(ns);
             self.all_step_ns.push(ns);
+            let Some(rep) = rep else { continue };
             if rep.resampled {
                 let _ = self.events.send(Event::Resampled {
                     applied: self.applied,
@@ -853,71 +868,34 @@ impl Coordinator {
             .filter
             .as_ref()
             .expect("the filter is home between steps");
-        let est = filter.estimate();
+        let applied_t = self.merger.applied_t();
+        let mut state = history::base_state(
+            &self.id,
+            &self.status,
+            filter,
+            self.applied,
+            applied_t,
+            self.cfg.particle_sample,
+        );
+        for r in &mut state.robots {
+            if let Some(a) = self.acked.get(&r.id) {
+                r.last_seq = a.max;
+                r.last_t = a.last_t;
+                r.records = a.records;
+                r.gaps = a.gaps();
+                r.queue_depth = self.merger.pending_of(&r.id);
+                r.lag_s = match (a.last_t, applied_t) {
+                    (Some(l), Some(t)) => (l - t).max(0.0),
+                    _ => 0.0,
+                };
+            }
+        }
         let mut step_ns = self.step_ns.clone();
         step_ns.sort_unstable();
-        let applied_t = self.merger.applied_t();
-        let mut robots: Vec<RobotStatus> = self
-            .acked
-            .iter()
-            .map(|(id, a)| {
-                let e = est.robots.iter().find(|r| &r.id == id);
-                RobotStatus {
-                    id: id.clone(),
-                    mode: if a.merged { "mapping" } else { "unknown_pose" },
-                    best: e.map(|e| e.best),
-                    mean: e.map(|e| e.mean),
-                    cov: e.map(|e| e.cov),
-                    last_seq: a.max,
-                    last_t: a.last_t,
-                    records: a.records,
-                    gaps: a.gaps(),
-                    queue_depth: self.merger.pending_of(id),
-                    lag_s: match (a.last_t, applied_t) {
-                        (Some(l), Some(t)) => (l - t).max(0.0),
-                        _ => 0.0,
-                    },
-                }
-            })
-            .collect();
-        robots.sort_by(|a, b| a.id.cmp(&b.id));
-        let particle_sample = est
-            .robots
-            .iter()
-            .enumerate()
-            .map(|(i, r)| {
-                let v = filter
-                    .particle_sample(i, self.cfg.particle_sample)
-                    .into_iter()
-                    .map(|(p, w)| [p.x, p.y, p.theta, w])
-                    .collect();
-                (r.id.clone(), v)
-            })
-            .collect();
-        RunState {
-            run: self.id.clone(),
-            status: self.status.clone(),
-            applied: self.applied,
-            t: applied_t,
-            ess: est.ess,
-            particles: est.particles,
-            resamples: filter.stats().resamples,
-            robots,
-            landmarks: est
-                .landmarks
-                .iter()
-                .map(|l| LandmarkState {
-                    slot: l.slot,
-                    id: l.id,
-                    mean: l.gaussian.mean,
-                    cov: l.gaussian.cov,
-                })
-                .collect(),
-            particle_sample,
-            step_ms: step_ns
-                .get(step_ns.len() / 2)
-                .map_or(0.0, |n| *n as f64 / 1e6),
-        }
+        state.step_ms = step_ns
+            .get(step_ns.len() / 2)
+            .map_or(0.0, |n| *n as f64 / 1e6);
+        state
     }
 }
 

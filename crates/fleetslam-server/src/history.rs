@@ -7,15 +7,15 @@ use crate::coordinator::{LandmarkState, RobotStatus, RunState};
 use crate::error::ApiError;
 use crate::merge::OrderKey;
 use fleetslam_core::config::{EKF_UPDATER, FilterConfig};
-use fleetslam_core::filter::{FastSlam, Snapshot};
+use fleetslam_core::filter::FastSlam;
 use fleetslam_core::log::{Record, record_order};
 use fleetslam_core::pose::Pose2;
 use fleetslam_data::formats::{LandmarkRow, TrajectoryPoint, Truth};
+use fleetslam_localize::{LateJoinSlam, LateJoinSnapshot, LocalizeConfig};
 use fleetslam_store::{MAX_RECORDS_PAGE, Store, StoredObservation};
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use std::collections::BTreeMap;
-use std::sync::Arc;
 
 /// Per-robot trajectories as `[t, x, y, theta]`: the robot's estimated (weighted mean) pose
 /// at its start and after each of its records, exactly as `fleetslam run` records them.
@@ -29,7 +29,8 @@ pub const TRUTH: &str = "truth";
 /// A stored snapshot of a running run.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RunSnapshot {
-    pub filter: Snapshot,
+    /// The filter with its localizers of robots that joined at an unknown pose.
+    pub filter: LateJoinSnapshot,
     /// Records applied.
     pub applied: u64,
     /// Key `(t, robot, seq)` of the last record applied: every stored record of a merged
@@ -227,17 +228,23 @@ pub fn updater_check(config: &FilterConfig) -> Result<(), ApiError> {
     }
 }
 
-/// A new filter for `config`.
-pub fn new_filter(config: &FilterConfig) -> Result<FastSlam, ApiError> {
+/// A new run's filter for `config`, localizing robots that join at an unknown pose with
+/// `localize`.
+pub fn new_filter(
+    config: &FilterConfig,
+    localize: LocalizeConfig,
+) -> Result<LateJoinSlam, ApiError> {
     updater_check(config)?;
-    FastSlam::new(config.clone()).map_err(|e| ApiError::BadRequest(format!("config: {e}")))
+    let slam =
+        FastSlam::new(config.clone()).map_err(|e| ApiError::BadRequest(format!("config: {e}")))?;
+    LateJoinSlam::from_slam(slam, localize)
+        .map_err(|e| ApiError::BadRequest(format!("localize: {e}")))
 }
 
 /// Restores a filter from a snapshot with the updater its configuration names.
-pub fn restore_filter(s: Snapshot) -> Result<FastSlam, ApiError> {
-    updater_check(&s.config)?;
-    let ekf = fleetslam_core::ekf::EkfUpdater::new(s.config.landmark_kind, &s.config.sensor_noise);
-    FastSlam::from_snapshot(s, Arc::new(ekf))
+pub fn restore_filter(s: LateJoinSnapshot) -> Result<LateJoinSlam, ApiError> {
+    updater_check(&s.slam.config)?;
+    LateJoinSlam::from_snapshot_ekf(s)
         .map_err(|e| ApiError::internal(anyhow::anyhow!("restoring a snapshot: {e}")))
 }
 
@@ -278,12 +285,12 @@ pub fn parse_records(obs: &[StoredObservation]) -> Result<Vec<Record>, ApiError>
 /// given, not later than it.
 pub fn records_after_snapshot(
     mut records: Vec<Record>,
-    filter: &FastSlam,
+    filter: &LateJoinSlam,
     last: Option<&OrderKey>,
     until: Option<f64>,
 ) -> Vec<Record> {
     records.retain(|r| {
-        filter.robot_index(&r.robot).is_some()
+        filter.phase(&r.robot).is_some()
             && last.is_none_or(|k| OrderKey::of(r) > *k)
             && until.is_none_or(|u| r.t <= u)
     });
@@ -317,14 +324,14 @@ pub async fn state_at(
     let (filter, applied, applied_t) = tokio::task::spawn_blocking(move || {
         let mut applied_t = last.as_ref().map(OrderKey::t);
         for r in &todo {
-            let i = filter
-                .robot_index(&r.robot)
-                .expect("kept robots in the filter");
             filter
                 .step(r)
                 .map_err(|e| ApiError::internal(anyhow::anyhow!("replaying: {e}")))?;
-            if let Some(v) = trajectories.get_mut(&r.robot) {
-                v.push(trajectory_point(&filter, i, r.t));
+            if let Some(i) = filter.slam().robot_index(&r.robot) {
+                trajectories
+                    .entry(r.robot.clone())
+                    .or_default()
+                    .push(trajectory_point(filter.slam(), i, r.t));
             }
             applied += 1;
             applied_t = Some(r.t);
@@ -338,39 +345,24 @@ pub async fn state_at(
     Ok(state)
 }
 
-/// A run's state from its filter alone (robots as the filter knows them).
+/// A run's state from its filter alone: robots that map with their pose estimates, robots
+/// that are being localized with their localization particles.
 pub fn base_state(
     run: &str,
     status: &str,
-    filter: &FastSlam,
+    filter: &LateJoinSlam,
     applied: u64,
     applied_t: Option<f64>,
     particle_sample: usize,
 ) -> RunState {
-    let est = filter.estimate();
-    let robots = est
-        .robots
-        .iter()
-        .map(|e| RobotStatus {
-            id: e.id.clone(),
-            mode: "mapping",
-            best: Some(e.best),
-            mean: Some(e.mean),
-            cov: Some(e.cov),
-            last_seq: None,
-            last_t: Some(e.last_t),
-            records: e.records,
-            gaps: 0,
-            queue_depth: 0,
-            lag_s: 0.0,
-        })
-        .collect();
-    let particle_sample = est
+    let slam = filter.slam();
+    let est = slam.estimate();
+    let mut particles: BTreeMap<String, Vec<[f64; 4]>> = est
         .robots
         .iter()
         .enumerate()
         .map(|(i, r)| {
-            let v = filter
+            let v = slam
                 .particle_sample(i, particle_sample)
                 .into_iter()
                 .map(|(p, w)| [p.x, p.y, p.theta, w])
@@ -378,6 +370,37 @@ pub fn base_state(
             (r.id.clone(), v)
         })
         .collect();
+    let mut robots: Vec<RobotStatus> = filter
+        .phases()
+        .into_iter()
+        .map(|ph| {
+            let e = est.robots.iter().find(|r| r.id == ph.id);
+            if e.is_none()
+                && let Some(ps) = filter.localization_particles(&ph.id, particle_sample)
+            {
+                particles.insert(
+                    ph.id.clone(),
+                    ps.into_iter()
+                        .map(|(p, w)| [p.x, p.y, p.theta, w])
+                        .collect(),
+                );
+            }
+            RobotStatus {
+                id: ph.id.clone(),
+                mode: ph.phase.as_str(),
+                best: e.map(|e| e.best),
+                mean: e.map(|e| e.mean),
+                cov: e.map(|e| e.cov),
+                last_seq: None,
+                last_t: e.map(|e| e.last_t),
+                records: e.map_or(0, |e| e.records),
+                gaps: 0,
+                queue_depth: 0,
+                lag_s: 0.0,
+            }
+        })
+        .collect();
+    robots.sort_by(|a, b| a.id.cmp(&b.id));
     RunState {
         run: run.to_string(),
         status: status.to_string(),
@@ -385,7 +408,7 @@ pub fn base_state(
         t: applied_t,
         ess: est.ess,
         particles: est.particles,
-        resamples: filter.stats().resamples,
+        resamples: slam.stats().resamples,
         robots,
         landmarks: est
             .landmarks
@@ -397,7 +420,7 @@ pub fn base_state(
                 cov: l.gaussian.cov,
             })
             .collect(),
-        particle_sample,
+        particle_sample: particles,
         step_ms: 0.0,
     }
 }

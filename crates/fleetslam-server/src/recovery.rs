@@ -9,6 +9,7 @@ use crate::error::ApiError;
 use crate::history::{self, RunSnapshot, Trajectories};
 use fleetslam_core::config::FilterConfig;
 use fleetslam_core::pose::PoseGaussian;
+use fleetslam_localize::LocalizeConfig;
 use fleetslam_store::RunRow;
 use std::collections::{BTreeMap, HashMap};
 use std::time::Instant;
@@ -52,22 +53,34 @@ async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> 
             let filter = history::restore_filter(snap.filter)?;
             (filter, snap.applied, last, snap.trajectories)
         }
-        None => (history::new_filter(&config)?, 0, None, Trajectories::new()),
+        None => (
+            history::new_filter(&config, LocalizeConfig::default())?,
+            0,
+            None,
+            Trajectories::new(),
+        ),
     };
     // A robot stored but not in the latest snapshot was being registered when the server
     // stopped (its registration was never answered): add it now.
     for r in &robots {
-        if let (Some(start), None) = (&r.start, filter.robot_index(&r.robot_id)) {
-            let start: PoseGaussian = serde_json::from_value(start.clone())
-                .map_err(|e| ApiError::internal(anyhow::anyhow!("stored start pose: {e}")))?;
-            let t0 = r.t0.unwrap_or(0.0);
-            let i = filter
-                .add_robot(&r.robot_id, &start, t0)
-                .map_err(|e| ApiError::internal(anyhow::anyhow!("re-adding a robot: {e}")))?;
-            trajectories.insert(
-                r.robot_id.clone(),
-                vec![history::trajectory_point(&filter, i, t0)],
-            );
+        if filter.phase(&r.robot_id).is_some() {
+            continue;
+        }
+        let again = |e: fleetslam_localize::LocalizeError| {
+            ApiError::internal(anyhow::anyhow!("re-adding a robot: {e}"))
+        };
+        match &r.start {
+            Some(start) => {
+                let start: PoseGaussian = serde_json::from_value(start.clone())
+                    .map_err(|e| ApiError::internal(anyhow::anyhow!("stored start pose: {e}")))?;
+                let t0 = r.t0.unwrap_or(0.0);
+                let i = filter.add_robot(&r.robot_id, &start, t0).map_err(again)?;
+                trajectories.insert(
+                    r.robot_id.clone(),
+                    vec![history::trajectory_point(filter.slam(), i, t0)],
+                );
+            }
+            None => filter.add_unknown_robot(&r.robot_id).map_err(again)?,
         }
     }
     let stored = history::all_records(store, &row.id).await?;
@@ -83,7 +96,7 @@ async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> 
             (
                 r.robot_id.clone(),
                 r.t0.unwrap_or(0.0),
-                filter.robot_index(&r.robot_id).is_some(),
+                true,
                 seqs.get(r.robot_id.as_str()).cloned().unwrap_or_default(),
             )
         })

@@ -400,3 +400,73 @@ fn a_run_recovers_after_a_crash_bit_for_bit() {
     assert_eq!(essence(&end_state), essence_of(&slam));
     assert_eq!(traj["robots"], trajectories_of(&out));
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_robot_at_an_unknown_pose_is_localized_then_maps_as_offline() {
+    let mut log = sim_log(3, 40.0);
+    let h = harness(ApiConfig::default()).await;
+    let (s, v) = h
+        .json(
+            "POST",
+            "/v1/runs",
+            None,
+            json!({"header": log.header, "config": {"particles": 40, "seed": 2}}),
+        )
+        .await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let run = v["id"].as_str().unwrap().to_string();
+    let mut tokens = Vec::new();
+    for r in &mut log.header.robots {
+        if r.id == "3" {
+            r.start = None;
+        }
+        let (s, v) = h
+            .json(
+                "POST",
+                &format!("/v1/runs/{run}/robots"),
+                None,
+                json!({"id": r.id, "start": r.start, "t0": r.t0}),
+            )
+            .await;
+        assert_eq!(s, StatusCode::CREATED, "{v}");
+        let want = if r.start.is_some() {
+            "mapping"
+        } else {
+            "localizing"
+        };
+        assert_eq!(v["mode"], want);
+        tokens.push((r.id.clone(), v["token"].as_str().unwrap().to_string()));
+    }
+    let st = h
+        .state_when(&run, |v| {
+            v["robots"].as_array().is_some_and(|r| r.len() == 3)
+        })
+        .await;
+    assert_eq!(st["robots"][2]["mode"], "localizing", "{st}");
+    assert!(
+        st["robots"][2]["best"].is_null(),
+        "no pose before it is localized"
+    );
+    post(&h, &run, &tokens, &log.records).await;
+    let (s, _) = h
+        .json("POST", &format!("/v1/runs/{run}/end"), None, json!({}))
+        .await;
+    assert_eq!(s, StatusCode::NO_CONTENT);
+    let (_, st) = h.get(&format!("/v1/runs/{run}/state")).await;
+    assert_eq!(st["robots"][2]["mode"], "mapping", "robot 3 joined: {st}");
+
+    // Offline, the same log with robot 3 unknown: the same filter, bit for bit.
+    let mut cfg = FilterConfig::from_header(&log.header);
+    cfg.particles = 40;
+    cfg.seed = 2;
+    let mut joining = fleetslam_localize::LateJoinSlam::new(cfg, Default::default()).unwrap();
+    fleetslam_data::run::run_log_joining(
+        &mut joining,
+        &log,
+        TrajectoryEstimate::Mean,
+        &Default::default(),
+        |_, _| {},
+    )
+    .unwrap();
+    assert_eq!(essence(&st), essence_of(joining.slam()));
+}

@@ -157,8 +157,24 @@ fn main() {
         }
         let total_ms = t.elapsed().as_secs_f64() * 1e3;
         println!(
-            "recovery: {load_ms:.0} ms to load the snapshot and {n} stored records, {total_ms:.0} ms until the {replayed} records after the snapshot were applied again"
+            "recovery: {load_ms:.0} ms to load the snapshot and {n} stored records; {total_ms:.0} ms until the {replayed} records after the snapshot were applied again (they wait for the robots or the {} ms reorder window)",
+            cfg.coordinator.reorder_window.as_millis()
         );
+        // The worst case: a crash just before a snapshot replays `snapshot_every` records.
+        let index = store.snapshot_index(&run).await.unwrap();
+        if index.len() >= 3 {
+            let (a0, _) = index[index.len() - 3];
+            let (a1, t1) = index[index.len() - 2];
+            let t = Instant::now();
+            let s = fleetslam_server::history::state_at(&store, &run, "active", t1.next_down(), 10)
+                .await
+                .unwrap();
+            println!(
+                "replay from a snapshot: {} records in {:.0} ms (from snapshot {a0} to just before snapshot {a1})",
+                s.applied as i64 - a0,
+                t.elapsed().as_secs_f64() * 1e3
+            );
+        }
         let t = Instant::now();
         let snap = RunSnapshot::decode(&latest.data).unwrap();
         let decode_ms = t.elapsed().as_secs_f64() * 1e3;

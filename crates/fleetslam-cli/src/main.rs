@@ -15,6 +15,9 @@ use fleetslam_data::sim::{SimConfig, simulate};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 
+mod chart;
+mod experiment;
+mod learned;
 mod replay;
 
 #[derive(Debug, Parser)]
@@ -43,6 +46,17 @@ enum Command {
     Replay(ReplayArgs),
     /// The main job: a server with simulated robots posting to it over HTTP.
     Demo(DemoArgs),
+    /// Train an MLP landmark updater (burn) on logged landmark updates.
+    Train(learned::TrainArgs),
+    /// Write the training rows of stored runs as an NDJSON dataset.
+    ExportTraining(learned::ExportTrainingArgs),
+    /// ns per landmark update of the EKF and MLP models, and whole runs with each.
+    BenchUpdaters(learned::BenchArgs),
+    /// EKF against the learned updaters: the paper's experiments, MRCLAM.
+    Experiment {
+        #[command(subcommand)]
+        which: experiment::ExperimentCommand,
+    },
 }
 
 #[derive(Debug, Args)]
@@ -195,9 +209,12 @@ struct RunArgs {
     config: Option<PathBuf>,
     #[arg(long)]
     particles: Option<usize>,
-    /// Landmark updater: `ekf`.
+    /// Landmark updater: `ekf`, or an MLP model file (`model.json` or a `fleetslam train`
+    /// output directory).
     #[arg(long, default_value = "ekf")]
     updater: String,
+    #[command(flatten)]
+    learned: learned::RunLearnedArgs,
     #[arg(long)]
     seed: Option<u64>,
     /// FastSLAM version.
@@ -244,6 +261,10 @@ fn main() -> Result<()> {
         Command::Serve(a) => runtime()?.block_on(cmd_serve(a)),
         Command::Replay(a) => runtime()?.block_on(cmd_replay(a)),
         Command::Demo(a) => runtime()?.block_on(cmd_demo(a)),
+        Command::Train(a) => learned::cmd_train(a),
+        Command::ExportTraining(a) => learned::cmd_export_training(a),
+        Command::BenchUpdaters(a) => learned::cmd_bench_updaters(a),
+        Command::Experiment { which } => experiment::cmd_experiment(which),
     }
 }
 
@@ -364,9 +385,8 @@ fn cmd_run(a: RunArgs) -> Result<()> {
             Association::Unknown
         };
     }
-    if a.updater != "ekf" {
-        bail!("unknown updater {:?}: this build has `ekf`", a.updater);
-    }
+    let updater = learned::updater_from_spec(&a.updater, &mut cfg)?;
+    let (updater, recorder) = learned::maybe_record(updater, &a.learned)?;
     let which = if a.trajectory == "best" {
         TrajectoryEstimate::Best
     } else {
@@ -376,7 +396,7 @@ fn cmd_run(a: RunArgs) -> Result<()> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()?;
-    let mut slam = FastSlam::new(cfg).context("configuring the filter")?;
+    let mut slam = FastSlam::with_updater(cfg, updater).context("configuring the filter")?;
     let bar = ProgressBar::new(log.records.len() as u64);
     bar.set_style(ProgressStyle::with_template(
         "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} records ({per_sec}, eta {eta})",
@@ -389,6 +409,7 @@ fn cmd_run(a: RunArgs) -> Result<()> {
     bar.finish_and_clear();
     out.write(&a.out)
         .with_context(|| format!("writing {}", a.out.display()))?;
+    learned::write_recorded(recorder.as_deref(), &a.learned)?;
     let m = &out.metrics;
     println!(
         "{} steps in {:.2} s (step p50 {:.3} ms, p95 {:.3} ms, max {:.3} ms); {} landmark updates at {:.0} ns each; {} landmarks; {} resamples -> {}",

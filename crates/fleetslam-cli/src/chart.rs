@@ -49,7 +49,15 @@ pub fn paper_chart(path: &Path, results: &[Scored]) -> Result<()> {
         }
     }
     let pos = |r: &Scored| (r.rms_x * r.rms_x + r.rms_y * r.rms_y).sqrt();
-    let y_max = results.iter().map(pos).fold(0.0f64, f64::max).max(1e-3) * 1.15;
+    // Log scale: the errors of different updaters differ by orders of magnitude.
+    let y_max = results.iter().map(pos).fold(0.0f64, f64::max).max(1e-3) * 1.5;
+    let y_min = results
+        .iter()
+        .map(pos)
+        .filter(|v| *v > 0.0)
+        .fold(f64::INFINITY, f64::min)
+        .min(y_max / 10.0)
+        * 0.7;
     let n_max = results.iter().map(|r| r.particles).max().unwrap_or(1) as f64;
     for (panel, exp) in root.split_evenly((2, 2)).iter().zip(&experiments) {
         let mut chart = ChartBuilder::on(panel)
@@ -57,11 +65,12 @@ pub fn paper_chart(path: &Path, results: &[Scored]) -> Result<()> {
             .margin(12)
             .x_label_area_size(40)
             .y_label_area_size(60)
-            .build_cartesian_2d(0f64..n_max * 1.05, 0f64..y_max)?;
+            .build_cartesian_2d(0f64..n_max * 1.05, (y_min..y_max).log_scale())?;
         chart
             .configure_mesh()
             .x_desc("particles")
-            .y_desc("position RMS error [m]")
+            .y_desc("position RMS error [m], log scale")
+            .x_label_formatter(&|v| format!("{v:.0}"))
             .label_style(("sans-serif", 13))
             .draw()?;
         for (k, u) in updaters.iter().enumerate() {
@@ -85,7 +94,7 @@ pub fn paper_chart(path: &Path, results: &[Scored]) -> Result<()> {
             .background_style(WHITE.mix(0.8))
             .border_style(BLACK)
             .label_font(("sans-serif", 13))
-            .position(SeriesLabelPosition::UpperRight)
+            .position(SeriesLabelPosition::MiddleRight)
             .draw()?;
     }
     root.present()?;

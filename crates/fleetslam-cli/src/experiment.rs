@@ -2,7 +2,7 @@
 //! and the MRCLAM Dataset 6 comparison, EKF against the learned updaters, written as
 //! markdown tables and PNG charts.
 
-use crate::learned::{run_with, train_with_progress, print_report, load_model};
+use crate::learned::{load_model, print_report, run_with, train_with_progress};
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use fleetslam_core::config::FilterConfig;
@@ -88,6 +88,11 @@ pub struct PaperArgs {
     /// Where the markdown table and PNG chart go.
     #[arg(long, default_value = "docs")]
     pub out_dir: PathBuf,
+    /// Only rewrite the table and chart from a results file written by an earlier run
+    /// (`WORK/paper-results.json`), with the models given by --paper-model and
+    /// --default-model.
+    #[arg(long, value_name = "RESULTS_JSON")]
+    pub replot: Option<PathBuf>,
 }
 
 #[derive(Debug, Args)]
@@ -112,7 +117,7 @@ pub struct MrclamArgs {
 }
 
 /// One scored run.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
 pub struct Scored {
     pub experiment: String,
     pub particles: usize,
@@ -147,13 +152,13 @@ fn axis_rms(est: &Truth, truth: &Truth) -> (f64, f64, f64) {
     ((sx / n).sqrt(), (sy / n).sqrt(), (sh / n).sqrt())
 }
 
-fn score(
-    experiment: &str,
-    seed: u64,
-    out: &RunOutput,
-    truth: &Truth,
-) -> Scored {
-    let ev = evaluate(&out.estimate, truth, out.metrics.shared_frame, &EvalOptions::default());
+fn score(experiment: &str, seed: u64, out: &RunOutput, truth: &Truth) -> Scored {
+    let ev = evaluate(
+        &out.estimate,
+        truth,
+        out.metrics.shared_frame,
+        &EvalOptions::default(),
+    );
     let (rx, ry, rh) = axis_rms(&out.estimate, truth);
     Scored {
         experiment: experiment.into(),
@@ -248,6 +253,17 @@ fn sim3(a: &PaperArgs, positions: Vec<[f64; 3]>, seed: u64) -> SimConfig {
 }
 
 fn cmd_paper(a: PaperArgs) -> Result<()> {
+    if let Some(path) = &a.replot {
+        let results: Vec<Scored> = serde_json::from_slice(
+            &std::fs::read(path).with_context(|| format!("reading {}", path.display()))?,
+        )?;
+        let models = [&a.training.paper_model, &a.training.default_model]
+            .into_iter()
+            .flatten()
+            .map(|p| load_model(p))
+            .collect::<Result<Vec<_>>>()?;
+        return write_paper_outputs(&a, &results, &models);
+    }
     let base = SimConfig::default();
     let world_a = random_landmarks(a.landmarks, base.arena, base.landmark_height, 100 + a.seed);
     // Training: the EKF's updates in world A, on trajectories of other seeds than the tests'.
@@ -258,7 +274,12 @@ fn cmd_paper(a: PaperArgs) -> Result<()> {
         let mut cfg = FilterConfig::from_header(&sim.log.header);
         cfg.particles = a.training.train_particles;
         cfg.seed = 1000 + k as u64;
-        rows.extend(record_rows(&sim.log, &cfg, a.training.training_rate, k as u64)?);
+        rows.extend(record_rows(
+            &sim.log,
+            &cfg,
+            a.training.training_rate,
+            k as u64,
+        )?);
         cfg_train = Some(cfg);
     }
     let cfg_train = cfg_train.context("--train-runs must be at least 1")?;
@@ -277,7 +298,8 @@ fn cmd_paper(a: PaperArgs) -> Result<()> {
     // The four worlds of the paper's experiments.
     let [w, h] = base.arena;
     let mirrored: Vec<[f64; 3]> = world_a.iter().map(|p| [w - p[0], h - p[1], p[2]]).collect();
-    let other_heights = random_landmarks(a.landmarks, base.arena, base.landmark_height, 300 + a.seed);
+    let other_heights =
+        random_landmarks(a.landmarks, base.arena, base.landmark_height, 300 + a.seed);
     let same_xy_other: Vec<[f64; 3]> = world_a
         .iter()
         .zip(&other_heights)
@@ -287,7 +309,10 @@ fn cmd_paper(a: PaperArgs) -> Result<()> {
     let worlds = [
         ("1: training landmarks, training positions", world_a.clone()),
         ("2: same landmarks, mirrored positions", mirrored),
-        ("3: other landmarks (new heights), same positions", same_xy_other),
+        (
+            "3: other landmarks (new heights), same positions",
+            same_xy_other,
+        ),
         ("4: other landmarks, other positions", world_d),
     ];
     let mut results = Vec::new();
@@ -314,15 +339,20 @@ fn cmd_paper(a: PaperArgs) -> Result<()> {
             }
         }
     }
-    std::fs::create_dir_all(&a.out_dir)?;
     let json = a.training.work.join("paper-results.json");
     std::fs::write(&json, serde_json::to_vec_pretty(&results)?)?;
-    let md = paper_markdown(&a, &results, &models);
+    println!("wrote {}", json.display());
+    write_paper_outputs(&a, &results, &models)
+}
+
+fn write_paper_outputs(a: &PaperArgs, results: &[Scored], models: &[MlpModel]) -> Result<()> {
+    std::fs::create_dir_all(&a.out_dir)?;
+    let md = paper_markdown(a, results, models);
     let md_path = a.out_dir.join("learned-paper.md");
     std::fs::write(&md_path, md)?;
     let png = a.out_dir.join("learned-paper.png");
-    crate::chart::paper_chart(&png, &results)?;
-    println!("wrote {}, {} and {}", md_path.display(), png.display(), json.display());
+    crate::chart::paper_chart(&png, results)?;
+    println!("wrote {} and {}", md_path.display(), png.display());
     Ok(())
 }
 
@@ -346,7 +376,10 @@ fn paper_markdown(a: &PaperArgs, results: &[Scored], models: &[MlpModel]) -> Str
         s,
         "RMS error of x [m], y [m] and heading [rad] with {table_n} particles (the paper's Table 1 layout):\n"
     );
-    let _ = writeln!(s, "| experiment | updater | x | y | heading |\n|---|---|---|---|---|");
+    let _ = writeln!(
+        s,
+        "| experiment | updater | x | y | heading |\n|---|---|---|---|---|"
+    );
     for r in results.iter().filter(|r| r.particles == table_n) {
         let _ = writeln!(
             s,
@@ -384,8 +417,12 @@ fn paper_markdown(a: &PaperArgs, results: &[Scored], models: &[MlpModel]) -> Str
             m.layout.as_str(),
             m.hidden(),
             m.activation.as_str(),
-            v.and_then(|v| v.get("mean_rmse")).and_then(|v| v.as_f64()).map_or("-".into(), |v| format!("{v:.4}")),
-            v.and_then(|v| v.get("no_update_rmse")).and_then(|v| v.as_f64()).map_or("-".into(), |v| format!("{v:.4}")),
+            v.and_then(|v| v.get("mean_rmse"))
+                .and_then(|v| v.as_f64())
+                .map_or("-".into(), |v| format!("{v:.4}")),
+            v.and_then(|v| v.get("no_update_rmse"))
+                .and_then(|v| v.as_f64())
+                .map_or("-".into(), |v| format!("{v:.4}")),
         );
     }
     s
@@ -424,12 +461,21 @@ fn cmd_mrclam(a: MrclamArgs) -> Result<()> {
         cfg.sensor_noise = base_cfg.sensor_noise;
         cfg.particles = a.training.train_particles;
         cfg.seed = 500 + k as u64;
-        rows.extend(record_rows(&sim.log, &cfg, a.training.training_rate, k as u64)?);
+        rows.extend(record_rows(
+            &sim.log,
+            &cfg,
+            a.training.training_rate,
+            k as u64,
+        )?);
     }
     std::fs::create_dir_all(&a.training.work)?;
     let data = a.training.work.join("mrclam-sim-training.ndjson");
     write_ndjson_path(&data, &rows)?;
-    println!("{} simulated training rows -> {}", rows.len(), data.display());
+    println!(
+        "{} simulated training rows -> {}",
+        rows.len(),
+        data.display()
+    );
     let models = models(
         &a.training,
         &rows,
@@ -499,7 +545,10 @@ fn mrclam_markdown(a: &MrclamArgs, results: &[Scored]) -> String {
     names.dedup();
     names.sort();
     names.dedup();
-    let _ = writeln!(s, "\nMeans over seeds:\n\n| updater | team ATE RMSE [m] | ns per update |\n|---|---|---|");
+    let _ = writeln!(
+        s,
+        "\nMeans over seeds:\n\n| updater | team ATE RMSE [m] | ns per update |\n|---|---|---|"
+    );
     for n in names {
         let v: Vec<&Scored> = results.iter().filter(|r| r.updater == n).collect();
         let k = v.len().max(1) as f64;

@@ -13,9 +13,7 @@ use fleetslam_data::run::{RunOutput, TrajectoryEstimate, run_log};
 use fleetslam_learned::dataset::synthetic_rows;
 use fleetslam_learned::row::{read_ndjson_path, write_ndjson_path};
 use fleetslam_learned::training::{BurnPredictor, TrainConfig, Trained, save_model_dir, train};
-use fleetslam_learned::{
-    MlpModel, MlpUpdater, RecordingConfig, RecordingUpdater, TrainingRow,
-};
+use fleetslam_learned::{MlpModel, MlpUpdater, RecordingConfig, RecordingUpdater, TrainingRow};
 use fleetslam_store::{NewModel, Store};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
@@ -47,7 +45,10 @@ pub struct RunLearnedArgs {
 pub fn updater_from_spec(spec: &str, cfg: &mut FilterConfig) -> Result<Arc<dyn LandmarkUpdater>> {
     if spec == "ekf" {
         cfg.updater = "ekf".into();
-        return Ok(Arc::new(EkfUpdater::new(cfg.landmark_kind, &cfg.sensor_noise)));
+        return Ok(Arc::new(EkfUpdater::new(
+            cfg.landmark_kind,
+            &cfg.sensor_noise,
+        )));
     }
     let model = load_model(Path::new(spec)).with_context(|| {
         format!("--updater {spec:?} is neither `ekf` nor a readable model file")
@@ -166,7 +167,11 @@ pub fn cmd_export_training(a: ExportTrainingArgs) -> Result<()> {
         .map(|(i, b)| TrainingRow::from_json(b).with_context(|| format!("stored row {i}")))
         .collect::<Result<Vec<_>>>()?;
     write_ndjson_path(&a.out, &rows)?;
-    println!("exported {} training rows -> {}", rows.len(), a.out.display());
+    println!(
+        "exported {} training rows -> {}",
+        rows.len(),
+        a.out.display()
+    );
     Ok(())
 }
 
@@ -202,6 +207,9 @@ pub struct TrainArgs {
     pub seed: Option<u64>,
     #[arg(long)]
     pub patience: Option<usize>,
+    /// Posterior covariance of the default layout: the network's or the EKF's closed form.
+    #[arg(long, value_parser = ["network", "closed-form"])]
+    pub covariance: Option<String>,
     /// Output directory: model.json, model.bpk, config.json, report.json.
     #[arg(long)]
     pub out: PathBuf,
@@ -226,6 +234,9 @@ impl TrainArgs {
         }
         if let Some(o) = &self.optimizer {
             c.optimizer = o.parse()?;
+        }
+        if let Some(v) = &self.covariance {
+            c.covariance = v.parse()?;
         }
         macro_rules! set {
             ($($f:ident),*) => { $( if let Some(v) = self.$f { c.$f = v; } )* };
@@ -326,7 +337,10 @@ pub fn cmd_train(a: TrainArgs) -> Result<()> {
     let t = train_with_progress(&rows, &cfg)?;
     print_report(&t);
     save_model_dir(&a.out, &t)?;
-    println!("saved {}/{{model.json,model.bpk,config.json,report.json}}", a.out.display());
+    println!(
+        "saved {}/{{model.json,model.bpk,config.json,report.json}}",
+        a.out.display()
+    );
     if a.store.given() {
         register(&a.store, &t)?;
         println!("registered model {} in the store", t.model.id);
@@ -389,7 +403,9 @@ pub fn bench_forward(model: &MlpModel, secs: f64) -> (Vec<f64>, Vec<f64>) {
     let mut plain = Vec::new();
     let mut burned = Vec::new();
     for &b in BATCHES {
-        let x: Vec<f32> = (0..b * n_in).map(|i| ((i % 7) as f32 - 3.0) * 0.3).collect();
+        let x: Vec<f32> = (0..b * n_in)
+            .map(|i| ((i % 7) as f32 - 3.0) * 0.3)
+            .collect();
         let mut y = vec![0f32; b * n_out];
         plain.push(ns_per_item(b, secs, || {
             for (xi, yi) in x.chunks_exact(n_in).zip(y.chunks_exact_mut(n_out)) {
@@ -414,7 +430,12 @@ pub fn run_with(
 ) -> Result<RunOutput> {
     cfg.updater = updater.name().to_string();
     let mut slam = FastSlam::with_updater(cfg, updater)?;
-    Ok(run_log(&mut slam, log, TrajectoryEstimate::Mean, |_, _| {})?)
+    Ok(run_log(
+        &mut slam,
+        log,
+        TrajectoryEstimate::Mean,
+        |_, _| {},
+    )?)
 }
 
 pub fn cmd_bench_updaters(a: BenchArgs) -> Result<()> {
@@ -425,7 +446,12 @@ pub fn cmd_bench_updaters(a: BenchArgs) -> Result<()> {
         .collect::<Result<Vec<_>>>()?;
     let kind = models[0].kind;
     if let Some(m) = models.iter().find(|m| m.kind != kind) {
-        bail!("model {} is for {} landmarks, not {}", m.id, m.kind.as_str(), kind.as_str());
+        bail!(
+            "model {} is for {} landmarks, not {}",
+            m.id,
+            m.kind.as_str(),
+            kind.as_str()
+        );
     }
     let noise = models[0].noise;
     let inputs: Vec<UpdateInput> = synthetic_rows(kind, &noise, 10_000, 3)
@@ -443,7 +469,13 @@ pub fn cmd_bench_updaters(a: BenchArgs) -> Result<()> {
     println!("| updater | batch 1 | batch 100 | batch 10,000 |\n|---|---|---|---|");
     for u in &updaters {
         let ns = bench_updater(u.as_ref(), &inputs, a.seconds);
-        println!("| {} | {:.0} | {:.0} | {:.0} |", u.name(), ns[0], ns[1], ns[2]);
+        println!(
+            "| {} | {:.0} | {:.0} | {:.0} |",
+            u.name(),
+            ns[0],
+            ns[1],
+            ns[2]
+        );
     }
     println!("\nns per forward pass of the network alone, plain Rust vs burn (flex):");
     println!("| model | path | batch 1 | batch 100 | batch 10,000 |\n|---|---|---|---|---|");
@@ -453,7 +485,10 @@ pub fn cmd_bench_updaters(a: BenchArgs) -> Result<()> {
             "| {} | plain | {:.1} | {:.1} | {:.1} |",
             m.id, plain[0], plain[1], plain[2]
         );
-        println!("| {} | burn | {:.1} | {:.1} | {:.1} |", m.id, burn[0], burn[1], burn[2]);
+        println!(
+            "| {} | burn | {:.1} | {:.1} | {:.1} |",
+            m.id, burn[0], burn[1], burn[2]
+        );
     }
     if let Some(path) = &a.log {
         let log = Log::read_path(path).with_context(|| format!("reading {}", path.display()))?;
@@ -471,9 +506,10 @@ pub fn cmd_bench_updaters(a: BenchArgs) -> Result<()> {
             path.display(),
             a.particles
         );
-        println!("| updater | wall time | step p50 | step p95 | ns per update (in filter) |\n|---|---|---|---|---|");
-        let ekf: Arc<dyn LandmarkUpdater> =
-            Arc::new(EkfUpdater::new(kind, &cfg.sensor_noise));
+        println!(
+            "| updater | wall time | step p50 | step p95 | ns per update (in filter) |\n|---|---|---|---|---|"
+        );
+        let ekf: Arc<dyn LandmarkUpdater> = Arc::new(EkfUpdater::new(kind, &cfg.sensor_noise));
         let mut list = vec![ekf];
         for m in &models {
             let mut c = cfg.clone();

@@ -24,7 +24,11 @@ fn models(kind: LandmarkKind, noise: &SensorNoise) -> Vec<MlpModel> {
             .split(',')
             .map(|d| {
                 let p = std::path::Path::new(d);
-                let f = if p.is_dir() { p.join("model.json") } else { p.to_path_buf() };
+                let f = if p.is_dir() {
+                    p.join("model.json")
+                } else {
+                    p.to_path_buf()
+                };
                 MlpModel::read_path(&f).expect("a model file")
             })
             .filter(|m| m.kind == kind)
@@ -74,20 +78,28 @@ fn bench_kind(c: &mut Criterion, kind: LandmarkKind) {
         let (n_in, n_out) = m.layout.dims(kind);
         let burn = BurnPredictor::new(m);
         for &b in &BATCHES {
-            let x: Vec<f32> = (0..b * n_in).map(|i| ((i % 7) as f32 - 3.0) * 0.3).collect();
+            let x: Vec<f32> = (0..b * n_in)
+                .map(|i| ((i % 7) as f32 - 3.0) * 0.3)
+                .collect();
             let mut y = vec![0f32; b * n_out];
             g.throughput(Throughput::Elements(b as u64));
-            g.bench_with_input(BenchmarkId::new(format!("{}/plain", m.id), b), &b, |bch, _| {
-                bch.iter(|| {
-                    for (xi, yi) in x.chunks_exact(n_in).zip(y.chunks_exact_mut(n_out)) {
-                        m.forward_normalized(black_box(xi), yi);
-                    }
-                    black_box(&y);
-                })
-            });
-            g.bench_with_input(BenchmarkId::new(format!("{}/burn", m.id), b), &b, |bch, _| {
-                bch.iter(|| black_box(burn.forward_normalized(black_box(&x))))
-            });
+            g.bench_with_input(
+                BenchmarkId::new(format!("{}/plain", m.id), b),
+                &b,
+                |bch, _| {
+                    bch.iter(|| {
+                        for (xi, yi) in x.chunks_exact(n_in).zip(y.chunks_exact_mut(n_out)) {
+                            m.forward_normalized(black_box(xi), yi);
+                        }
+                        black_box(&y);
+                    })
+                },
+            );
+            g.bench_with_input(
+                BenchmarkId::new(format!("{}/burn", m.id), b),
+                &b,
+                |bch, _| bch.iter(|| black_box(burn.forward_normalized(black_box(&x)))),
+            );
         }
     }
     g.finish();

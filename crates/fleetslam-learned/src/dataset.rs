@@ -38,7 +38,10 @@ fn encode_frame<const D: usize>(
     f.los_features(x);
     let (corr, cov) = f.from_world(&row.prior_mean, &row.output().posterior);
     f.los_targets(&corr, &cov, y)?;
-    x.iter().chain(y.iter()).all(|v| v.is_finite()).then_some(())
+    x.iter()
+        .chain(y.iter())
+        .all(|v| v.is_finite())
+        .then_some(())
 }
 
 /// Encodes rows of `kind` for `layout`; rows of another kind, degenerate geometry or a
@@ -100,7 +103,10 @@ fn median(mut v: Vec<f64>) -> Option<f64> {
 /// Estimates the sensor noise behind logged EKF updates. In the measurement frame the EKF
 /// is a linear update with `H = I`, so the information form gives
 /// `Q⁻¹ = Σ'⁻¹ − Σ⁻¹` for every row; the estimate is the per-axis median over rows.
-pub fn estimate_noise(rows: &[TrainingRow], kind: LandmarkKind) -> Result<SensorNoise, LearnedError> {
+pub fn estimate_noise(
+    rows: &[TrainingRow],
+    kind: LandmarkKind,
+) -> Result<SensorNoise, LearnedError> {
     let probe = SensorNoise::default();
     let mut axes: [Vec<f64>; 3] = Default::default();
     for row in rows.iter().filter(|r| r.kind == kind) {
@@ -165,7 +171,9 @@ pub fn estimate_noise(rows: &[TrainingRow], kind: LandmarkKind) -> Result<Sensor
             }
         }
     };
-    noise.validate("estimated noise").map_err(LearnedError::Data)?;
+    noise
+        .validate("estimated noise")
+        .map_err(LearnedError::Data)?;
     Ok(noise)
 }
 
@@ -229,7 +237,10 @@ pub fn updater_error(updater: &dyn LandmarkUpdater, rows: &[TrainingRow]) -> Upd
         s0 += d2(&row.prior_mean, &row.post_mean);
         // Frobenius norm of a symmetric matrix from its upper triangle.
         let fro = |c: &[f64; 6]| -> f64 {
-            c[0] * c[0] + c[3] * c[3] + c[5] * c[5] + 2.0 * (c[1] * c[1] + c[2] * c[2] + c[4] * c[4])
+            c[0] * c[0]
+                + c[3] * c[3]
+                + c[5] * c[5]
+                + 2.0 * (c[1] * c[1] + c[2] * c[2] + c[4] * c[4])
         };
         let diff: [f64; 6] = std::array::from_fn(|k| o.posterior.cov[k] - row.post_cov[k]);
         let denom = fro(&row.post_cov);
@@ -304,7 +315,11 @@ pub fn synthetic_rows(
             }),
         };
         let Some(d) = chol else { continue };
-        let truth = [prior.mean[0] + d[0], prior.mean[1] + d[1], prior.mean[2] + d[2]];
+        let truth = [
+            prior.mean[0] + d[0],
+            prior.mean[1] + d[1],
+            prior.mean[2] + d[2],
+        ];
         let z = match kind {
             LandmarkKind::RangeBearing2d => {
                 let Some((zh, _, _)) = range_bearing_predict(&pose, truth[0], truth[1]) else {

@@ -12,7 +12,7 @@
 
 use crate::LearnedError;
 use crate::frame::{Frame, InputLayout, frame2, frame3, paper_features};
-use crate::model::{MAX_IO, MlpModel};
+use crate::model::{CovarianceSource, MAX_IO, MlpModel};
 use fleetslam_core::config::FilterConfig;
 use fleetslam_core::ekf::EkfUpdater;
 use fleetslam_core::pose::Pose2;
@@ -106,7 +106,12 @@ impl MlpUpdater {
                 self.model
                     .predict(&feats[..self.n_in], &mut out[..self.n_out]);
                 let (corr, cov) = f.los_decode(&out[..self.n_out]);
-                f.to_world(&inp.prior.mean, &corr, &cov)
+                match self.model.covariance {
+                    CovarianceSource::Network => f.to_world(&inp.prior.mean, &corr, &cov),
+                    CovarianceSource::ClosedForm => {
+                        f.to_world(&inp.prior.mean, &corr, &f.closed_form_cov(&inn))
+                    }
+                }
             }
             InputLayout::Paper => {
                 paper_features(self.model.kind, inp, &mut feats[..self.n_in]);
@@ -222,7 +227,9 @@ mod tests {
                 let b: f64 = rng.random_range(-1.5..1.5);
                 let z0 = match kind {
                     LandmarkKind::RangeBearing2d => [r, b, 0.0],
-                    LandmarkKind::Point3d => [r * b.cos(), r * b.sin(), rng.random_range(-1.0..1.0)],
+                    LandmarkKind::Point3d => {
+                        [r * b.cos(), r * b.sin(), rng.random_range(-1.0..1.0)]
+                    }
                 };
                 let mut prior = ekf.initialize(&pose, &z0);
                 let s = rng.random_range(0.05..3.0);
@@ -248,7 +255,10 @@ mod tests {
                 }
                 for k in 0..6 {
                     let tol = 1e-9 * (1.0 + want.posterior.cov[k].abs());
-                    assert!((got.0.cov[k] - want.posterior.cov[k]).abs() < tol, "{kind:?} cov {k}");
+                    assert!(
+                        (got.0.cov[k] - want.posterior.cov[k]).abs() < tol,
+                        "{kind:?} cov {k}"
+                    );
                 }
                 assert!((got.1 - want.log_likelihood).abs() < 1e-8, "{kind:?} ll");
                 assert!((got.2 - want.mahalanobis2).abs() < 1e-8);

@@ -69,7 +69,9 @@ pub enum LearnedError {
         model: LandmarkKind,
         expected: LandmarkKind,
     },
-    #[error("model input layout mismatch: the model has {model}, this build expects {expected}; retrain the model with this build")]
+    #[error(
+        "model input layout mismatch: the model has {model}, this build expects {expected}; retrain the model with this build"
+    )]
     LayoutMismatch { model: String, expected: String },
     #[error("{0}")]
     Config(String),

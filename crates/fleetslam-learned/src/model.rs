@@ -64,6 +64,32 @@ impl std::str::FromStr for Activation {
     }
 }
 
+/// Where the `line_of_sight` updater takes the posterior covariance from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CovarianceSource {
+    /// The network's Cholesky factor (always positive definite; its errors compound over
+    /// repeated updates of the same landmark).
+    #[default]
+    Network,
+    /// The EKF's closed form `Σ − Σ (Σ + Q)⁻¹ Σ` in the measurement frame, from the
+    /// `(Σ + Q)⁻¹` the likelihood needs anyway: exact, and no error compounds.
+    ClosedForm,
+}
+
+impl std::str::FromStr for CovarianceSource {
+    type Err = LearnedError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "network" => Ok(CovarianceSource::Network),
+            "closed_form" | "closed-form" => Ok(CovarianceSource::ClosedForm),
+            o => Err(LearnedError::Config(format!(
+                "unknown covariance source {o:?}: use network or closed-form"
+            ))),
+        }
+    }
+}
+
 /// A dense layer: `y[o] = b[o] + Σᵢ x[i] W[i][o]`, `W` row-major `[inputs][outputs]`
 /// (burn's `Linear` layout).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -105,7 +131,11 @@ impl Normalization {
             .iter()
             .map(|s| {
                 let sd = (s / n).sqrt();
-                if sd > 1e-12 && sd.is_finite() { sd } else { 1.0 }
+                if sd > 1e-12 && sd.is_finite() {
+                    sd
+                } else {
+                    1.0
+                }
             })
             .collect();
         Self { mean, std }
@@ -133,6 +163,10 @@ pub struct MlpModel {
     /// updates themselves; used for the features, the likelihood and new landmarks.
     pub noise: SensorNoise,
     pub activation: Activation,
+    /// Posterior covariance of the `line_of_sight` layout: the network's or the closed
+    /// form (the `paper` layout always uses the closed form). Default `network`.
+    #[serde(default)]
+    pub covariance: CovarianceSource,
     pub input_norm: Normalization,
     pub output_norm: Normalization,
     pub layers: Vec<DenseLayer>,
@@ -174,10 +208,7 @@ impl MlpModel {
     pub fn validate(&self) -> Result<(), LearnedError> {
         let bad = |m: String| Err(LearnedError::Model(m));
         if self.format != MODEL_FORMAT {
-            return bad(format!(
-                "format {:?} is not {MODEL_FORMAT:?}",
-                self.format
-            ));
+            return bad(format!("format {:?} is not {MODEL_FORMAT:?}", self.format));
         }
         if self.format_version != MODEL_FORMAT_VERSION {
             return bad(format!(
@@ -194,9 +225,7 @@ impl MlpModel {
         if self.id.trim().is_empty() {
             return bad("the model id is empty".into());
         }
-        self.noise
-            .validate("noise")
-            .map_err(LearnedError::Model)?;
+        self.noise.validate("noise").map_err(LearnedError::Model)?;
         let (n_in, n_out) = self.layout.dims(self.kind);
         if self.layers.is_empty() {
             return bad("the model has no layers".into());

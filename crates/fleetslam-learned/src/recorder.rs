@@ -60,8 +60,21 @@ type InputBits = [u64; 15];
 fn input_bits(i: &UpdateInput) -> InputBits {
     let p = &i.prior;
     let v = [
-        p.mean[0], p.mean[1], p.mean[2], p.cov[0], p.cov[1], p.cov[2], p.cov[3], p.cov[4],
-        p.cov[5], i.pose.x, i.pose.y, i.pose.theta, i.z[0], i.z[1], i.z[2],
+        p.mean[0],
+        p.mean[1],
+        p.mean[2],
+        p.cov[0],
+        p.cov[1],
+        p.cov[2],
+        p.cov[3],
+        p.cov[4],
+        p.cov[5],
+        i.pose.x,
+        i.pose.y,
+        i.pose.theta,
+        i.z[0],
+        i.z[1],
+        i.z[2],
     ];
     v.map(f64::to_bits)
 }

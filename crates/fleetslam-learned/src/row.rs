@@ -126,9 +126,8 @@ pub fn read_ndjson_path(path: &Path) -> Result<Vec<TrainingRow>, LearnedError> {
         if line.trim().is_empty() {
             continue;
         }
-        let row = TrainingRow::from_json(&line).map_err(|e| {
-            LearnedError::Row(format!("{} line {}: {e}", path.display(), i + 1))
-        })?;
+        let row = TrainingRow::from_json(&line)
+            .map_err(|e| LearnedError::Row(format!("{} line {}: {e}", path.display(), i + 1)))?;
         rows.push(row);
     }
     Ok(rows)

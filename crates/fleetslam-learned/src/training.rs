@@ -11,8 +11,7 @@ use crate::dataset::{Encoded, UpdaterError, encode, estimate_noise, split, updat
 use crate::frame::InputLayout;
 use crate::inference::MlpUpdater;
 use crate::model::{
-    Activation, DenseLayer, MAX_WIDTH, MODEL_FORMAT, MODEL_FORMAT_VERSION, MlpModel,
-    Normalization,
+    Activation, CovarianceSource, DenseLayer, MAX_WIDTH, MODEL_FORMAT, MODEL_FORMAT_VERSION, MlpModel, Normalization,
 };
 use crate::row::TrainingRow;
 use burn::module::{Module, Param};
@@ -72,6 +71,9 @@ pub struct TrainConfig {
     pub patience: usize,
     /// Sensor noise; `None`: estimated from the rows.
     pub noise: Option<SensorNoise>,
+    /// Where the `line_of_sight` updater's posterior covariance comes from.
+    #[serde(default)]
+    pub covariance: CovarianceSource,
 }
 
 impl TrainConfig {
@@ -96,6 +98,7 @@ impl TrainConfig {
             seed: 1,
             patience: 50,
             noise: None,
+            covariance: CovarianceSource::ClosedForm,
         }
     }
 
@@ -116,6 +119,7 @@ impl TrainConfig {
             seed: 1,
             patience: 25,
             noise: None,
+            covariance: CovarianceSource::Network,
         }
     }
 
@@ -145,7 +149,10 @@ impl TrainConfig {
             return bad("epochs and batch size must be > 0".into());
         }
         if !(self.val_split > 0.0 && self.val_split < 1.0) {
-            return bad(format!("val split must be in (0, 1), got {}", self.val_split));
+            return bad(format!(
+                "val split must be in (0, 1), got {}",
+                self.val_split
+            ));
         }
         Ok(())
     }
@@ -250,7 +257,11 @@ impl BurnMlp {
 
     /// Loads a burnpack record saved by [`save_model_dir`] into a network of `model`'s
     /// architecture.
-    pub fn load_burnpack(model: &MlpModel, path: &Path, device: &Device) -> Result<Self, LearnedError> {
+    pub fn load_burnpack(
+        model: &MlpModel,
+        path: &Path,
+        device: &Device,
+    ) -> Result<Self, LearnedError> {
         let (n_in, n_out) = model.layout.dims(model.kind);
         let net = Self::init(n_in, &model.hidden(), n_out, model.activation, device);
         net.try_load_file(path)
@@ -447,6 +458,7 @@ pub fn train(
         preset: cfg.preset.clone(),
         noise,
         activation: cfg.activation,
+        covariance: cfg.covariance,
         input_norm: in_norm,
         output_norm: out_norm,
         layers,

@@ -12,8 +12,12 @@ use fleetslam_data::run::{TrajectoryEstimate, run_log};
 use fleetslam_data::sim::{SimConfig, simulate};
 use fleetslam_learned::dataset::synthetic_rows;
 use fleetslam_learned::model::MlpModel;
-use fleetslam_learned::training::{BurnMlp, BurnPredictor, TrainConfig, Trained, save_model_dir, train};
-use fleetslam_learned::{InputLayout, LearnedError, MlpUpdater, RecordingConfig, RecordingUpdater, TrainingRow};
+use fleetslam_learned::training::{
+    BurnMlp, BurnPredictor, TrainConfig, Trained, save_model_dir, train,
+};
+use fleetslam_learned::{
+    InputLayout, LearnedError, MlpUpdater, RecordingConfig, RecordingUpdater, TrainingRow,
+};
 use std::sync::{Arc, OnceLock};
 
 fn noise() -> SensorNoise {
@@ -59,7 +63,11 @@ fn training_reduces_validation_error_below_a_bound() {
         r.updater
     );
     // The sensor noise was recovered from the EKF's updates.
-    assert!((r.noise.range - 0.1).abs() < 1e-6 && (r.noise.bearing - 0.03).abs() < 1e-6, "{:?}", r.noise);
+    assert!(
+        (r.noise.range - 0.1).abs() < 1e-6 && (r.noise.bearing - 0.03).abs() < 1e-6,
+        "{:?}",
+        r.noise
+    );
     // Likelihood and Mahalanobis distance are the EKF's closed form.
     assert!(r.updater.log_likelihood_rmse < 1e-6 && r.updater.mahalanobis2_rmse < 1e-6);
     assert_eq!(r.updater.rejected, 0);
@@ -96,7 +104,12 @@ fn saved_model_reloads_and_predicts_identically() {
     b.update_batch(&inputs, &mut ob);
     assert_eq!(oa, ob);
     // burn's own record reloads to the same weights.
-    let net = BurnMlp::load_burnpack(&loaded, &dir.path().join("model.bpk"), &burn::tensor::Device::flex()).unwrap();
+    let net = BurnMlp::load_burnpack(
+        &loaded,
+        &dir.path().join("model.bpk"),
+        &burn::tensor::Device::flex(),
+    )
+    .unwrap();
     assert_eq!(net.dense_layers().unwrap(), t.model.layers);
 }
 
@@ -105,7 +118,9 @@ fn plain_forward_matches_burn_forward() {
     let t = trained_2d();
     let (n_in, n_out) = t.model.layout.dims(t.model.kind);
     let n = 500;
-    let x: Vec<f32> = (0..n * n_in).map(|i| ((i * 37 % 101) as f32 / 50.0) - 1.0).collect();
+    let x: Vec<f32> = (0..n * n_in)
+        .map(|i| ((i * 37 % 101) as f32 / 50.0) - 1.0)
+        .collect();
     let burn = BurnPredictor::new(&t.model).forward_normalized(&x);
     let mut y = vec![0f32; n_out];
     let mut worst = 0f32;
@@ -128,18 +143,27 @@ fn mismatched_models_are_refused() {
     // Another input layout version.
     let mut v = m.clone();
     v.layout_version += 1;
-    assert!(matches!(MlpUpdater::new(v).unwrap_err(), LearnedError::LayoutMismatch { .. }));
+    assert!(matches!(
+        MlpUpdater::new(v).unwrap_err(),
+        LearnedError::LayoutMismatch { .. }
+    ));
     // Another layout than its weights were trained for.
     let mut l = m.clone();
     l.layout = InputLayout::Paper;
-    assert!(matches!(MlpUpdater::new(l).unwrap_err(), LearnedError::LayoutMismatch { .. }));
+    assert!(matches!(
+        MlpUpdater::new(l).unwrap_err(),
+        LearnedError::LayoutMismatch { .. }
+    ));
     // A model file of another kind than it claims (read back through JSON).
     let mut json: serde_json::Value = serde_json::from_slice(&m.to_json()).unwrap();
     json["kind"] = "point3d".into();
     let e = MlpModel::from_json(&serde_json::to_vec(&json).unwrap()).unwrap_err();
     assert!(matches!(e, LearnedError::LayoutMismatch { .. }), "{e}");
     // Garbage and unknown fields.
-    assert!(matches!(MlpModel::from_json(b"{").unwrap_err(), LearnedError::Model(_)));
+    assert!(matches!(
+        MlpModel::from_json(b"{").unwrap_err(),
+        LearnedError::Model(_)
+    ));
     json["kind"] = "range_bearing_2d".into();
     json["extra"] = 1.into();
     assert!(matches!(
@@ -176,10 +200,14 @@ fn recorded_run(threads: usize, rate: f64, cap: usize) -> (Vec<TrainingRow>, u64
     let sim = small_sim(LandmarkKind::RangeBearing2d, 4);
     let mut cfg = FilterConfig::from_header(&sim.log.header);
     cfg.particles = 100;
-    let ekf: Arc<dyn LandmarkUpdater> = Arc::new(EkfUpdater::new(cfg.landmark_kind, &cfg.sensor_noise));
+    let ekf: Arc<dyn LandmarkUpdater> =
+        Arc::new(EkfUpdater::new(cfg.landmark_kind, &cfg.sensor_noise));
     let rec = Arc::new(RecordingUpdater::new(ekf, RecordingConfig { rate, cap, seed: 5 }).unwrap());
     let mut slam = FastSlam::with_updater(cfg, rec.clone()).unwrap();
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap();
     pool.install(|| run_log(&mut slam, &sim.log, TrajectoryEstimate::Mean, |_, _| {}).unwrap());
     (rec.drain_rows(), rec.seen())
 }
@@ -221,10 +249,18 @@ fn mlp_inside_fastslam_stays_finite_and_close_to_the_ekf() {
         c.updater = u.name().to_string();
         let mut slam = FastSlam::with_updater(c, u).unwrap();
         let out = run_log(&mut slam, &sim.log, TrajectoryEstimate::Mean, |_, _| {}).unwrap();
-        assert!(out.final_estimate.landmarks.iter().all(|l| l.gaussian.is_finite()));
+        assert!(
+            out.final_estimate
+                .landmarks
+                .iter()
+                .all(|l| l.gaussian.is_finite())
+        );
         evaluate(&out.estimate, &sim.truth, true, &EvalOptions::default())
     };
-    let ekf = run(Arc::new(EkfUpdater::new(cfg.landmark_kind, &cfg.sensor_noise)));
+    let ekf = run(Arc::new(EkfUpdater::new(
+        cfg.landmark_kind,
+        &cfg.sensor_noise,
+    )));
     let mut c2 = cfg.clone();
     c2.updater = t.model.id.clone();
     let mlp = run(Arc::new(MlpUpdater::for_run(t.model.clone(), &c2).unwrap()));

@@ -13,15 +13,14 @@ use fleetslam_data::run::{RunOutput, TrajectoryEstimate, run_log};
 use fleetslam_learned::dataset::synthetic_rows;
 use fleetslam_learned::row::{read_ndjson_path, write_ndjson_path};
 use fleetslam_learned::training::{BurnPredictor, TrainConfig, Trained, save_model_dir, train};
-use fleetslam_learned::{MlpModel, MlpUpdater, RecordingConfig, RecordingUpdater, TrainingRow};
+use fleetslam_learned::{
+    MlpModel, MlpUpdater, RecordingConfig, RecordingUpdater, STORE_MODEL_KIND, TrainingRow,
+};
 use fleetslam_store::{NewModel, Store};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
-
-/// The store's kind for MLP updater models (`weights` holds the model JSON).
-pub const STORE_MODEL_KIND: &str = "mlp_updater";
 
 /// `run`'s options for the learned updater and training rows.
 #[derive(Debug, Args, Clone)]

@@ -205,8 +205,8 @@ impl<const D: usize> Frame<D> {
         let dw = self.t.transpose() * corr;
         let cw = self.t.transpose() * cov * self.t;
         let mut mean = *prior_mean;
-        for i in 0..D {
-            mean[i] += dw[i];
+        for (m, d) in mean.iter_mut().zip(dw.iter()) {
+            *m += d;
         }
         if D == 2 {
             LandmarkGaussian::from_2d(

@@ -70,6 +70,13 @@ impl MlpUpdater {
                 config.updater, model.id
             )));
         }
+        if model.kind != config.landmark_kind {
+            return Err(LearnedError::KindMismatch {
+                model: model.kind,
+                expected: config.landmark_kind,
+                id: model.id,
+            });
+        }
         let (m, r) = (&model.noise, &config.sensor_noise);
         let pairs: Vec<(f64, f64)> = match config.landmark_kind {
             LandmarkKind::RangeBearing2d => vec![(m.range, r.range), (m.bearing, r.bearing)],
@@ -250,15 +257,12 @@ mod tests {
                     }
                 }
                 .unwrap();
-                for k in 0..3 {
-                    assert!((got.0.mean[k] - want.posterior.mean[k]).abs() < 1e-9);
+                for (g, w) in got.0.mean.iter().zip(&want.posterior.mean) {
+                    assert!((g - w).abs() < 1e-9);
                 }
-                for k in 0..6 {
-                    let tol = 1e-9 * (1.0 + want.posterior.cov[k].abs());
-                    assert!(
-                        (got.0.cov[k] - want.posterior.cov[k]).abs() < tol,
-                        "{kind:?} cov {k}"
-                    );
+                for (k, (g, w)) in got.0.cov.iter().zip(&want.posterior.cov).enumerate() {
+                    let tol = 1e-9 * (1.0 + w.abs());
+                    assert!((g - w).abs() < tol, "{kind:?} cov {k}");
                 }
                 assert!((got.1 - want.log_likelihood).abs() < 1e-8, "{kind:?} ll");
                 assert!((got.2 - want.mahalanobis2).abs() < 1e-8);

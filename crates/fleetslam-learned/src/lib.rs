@@ -41,7 +41,7 @@ pub mod training;
 pub use dataset::{UpdaterError, estimate_noise, updater_error};
 pub use frame::InputLayout;
 pub use inference::MlpUpdater;
-pub use model::{Activation, MlpModel};
+pub use model::{Activation, CovarianceSource, MlpModel, STORE_MODEL_KIND};
 pub use recorder::{RecordingConfig, RecordingUpdater};
 pub use row::TrainingRow;
 

@@ -7,6 +7,9 @@ use crate::frame::InputLayout;
 use fleetslam_core::sensor::{LandmarkKind, SensorNoise};
 use serde::{Deserialize, Serialize};
 
+/// The `kind` a store keeps MLP updater models under (their `weights` are the model JSON).
+pub const STORE_MODEL_KIND: &str = "mlp_updater";
+
 /// The format tag every model file carries.
 pub const MODEL_FORMAT: &str = "fleetslam-mlp";
 /// The version of the model file format this build reads and writes.
@@ -325,14 +328,16 @@ impl MlpModel {
     pub fn predict(&self, features: &[f64], out: &mut [f64]) {
         let mut x = [0f32; MAX_IO];
         let n_in = features.len();
-        for i in 0..n_in {
-            x[i] = ((features[i] - self.input_norm.mean[i]) / self.input_norm.std[i]) as f32;
+        let norm = &self.input_norm;
+        for (((xi, f), m), s) in x.iter_mut().zip(features).zip(&norm.mean).zip(&norm.std) {
+            *xi = ((f - m) / s) as f32;
         }
         let mut y = [0f32; MAX_IO];
         let n_out = out.len();
         self.forward_normalized(&x[..n_in], &mut y[..n_out]);
-        for k in 0..n_out {
-            out[k] = y[k] as f64 * self.output_norm.std[k] + self.output_norm.mean[k];
+        let norm = &self.output_norm;
+        for (((o, yi), m), s) in out.iter_mut().zip(&y).zip(&norm.mean).zip(&norm.std) {
+            *o = *yi as f64 * s + m;
         }
     }
 }

@@ -11,7 +11,8 @@ use crate::dataset::{Encoded, UpdaterError, encode, estimate_noise, split, updat
 use crate::frame::InputLayout;
 use crate::inference::MlpUpdater;
 use crate::model::{
-    Activation, CovarianceSource, DenseLayer, MAX_WIDTH, MODEL_FORMAT, MODEL_FORMAT_VERSION, MlpModel, Normalization,
+    Activation, CovarianceSource, DenseLayer, MAX_WIDTH, MODEL_FORMAT, MODEL_FORMAT_VERSION,
+    MlpModel, Normalization,
 };
 use crate::row::TrainingRow;
 use burn::module::{Module, Param};
@@ -472,8 +473,8 @@ pub fn train(
     let mut pred = vec![0.0; n_out];
     for (x, y) in va.x.chunks_exact(n_in).zip(va.y.chunks_exact(n_out)) {
         model.predict(x, &mut pred);
-        for k in 0..n_out {
-            sq[k] += (pred[k] - y[k]).powi(2);
+        for ((s, p), t) in sq.iter_mut().zip(&pred).zip(y) {
+            *s += (p - t).powi(2);
         }
     }
     let nv = va.len() as f64;

@@ -66,11 +66,14 @@ pub fn load_model(path: &Path) -> Result<MlpModel> {
     Ok(MlpModel::read_path(&file)?)
 }
 
+/// The recorder of a run, when it logs training rows.
+pub type Recorder = Option<Arc<RecordingUpdater>>;
+
 /// Wraps `updater` in a recorder when `--log-training` is given.
 pub fn maybe_record(
     updater: Arc<dyn LandmarkUpdater>,
     a: &RunLearnedArgs,
-) -> Result<(Arc<dyn LandmarkUpdater>, Option<Arc<RecordingUpdater>>)> {
+) -> Result<(Arc<dyn LandmarkUpdater>, Recorder)> {
     if a.log_training.is_none() {
         return Ok((updater, None));
     }

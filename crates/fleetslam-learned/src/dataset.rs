@@ -36,7 +36,7 @@ fn encode_frame<const D: usize>(
     y: &mut [f64],
 ) -> Option<()> {
     f.los_features(x);
-    let (corr, cov) = f.from_world(&row.prior_mean, &row.output().posterior);
+    let (corr, cov) = f.frame_posterior(&row.prior_mean, &row.output().posterior);
     f.los_targets(&corr, &cov, y)?;
     x.iter()
         .chain(y.iter())
@@ -116,7 +116,7 @@ pub fn estimate_noise(
                 let Some(f) = frame2(&inp, &probe) else {
                     continue;
                 };
-                let (_, post) = f.from_world(&row.prior_mean, &row.output().posterior);
+                let (_, post) = f.frame_posterior(&row.prior_mean, &row.output().posterior);
                 let (Some(pi), Some(si)) = (post.try_inverse(), f.sigma.try_inverse()) else {
                     continue;
                 };
@@ -132,7 +132,7 @@ pub fn estimate_noise(
             }
             LandmarkKind::Point3d => {
                 let f = frame3(&inp, &probe);
-                let (_, post) = f.from_world(&row.prior_mean, &row.output().posterior);
+                let (_, post) = f.frame_posterior(&row.prior_mean, &row.output().posterior);
                 let (Some(pi), Some(si)) = (post.try_inverse(), f.sigma.try_inverse()) else {
                     continue;
                 };

@@ -124,7 +124,7 @@ pub(crate) fn frame2(inp: &UpdateInput, noise: &SensorNoise) -> Option<Frame<2>>
     let dx = inp.prior.mean[0] - inp.pose.x;
     let dy = inp.prior.mean[1] - inp.pose.y;
     let q = dx * dx + dy * dy;
-    if !(q >= 1e-12) {
+    if q.is_nan() || q < 1e-12 {
         return None;
     }
     let r = q.sqrt();
@@ -196,7 +196,7 @@ impl<const D: usize> Frame<D> {
 
     /// A frame correction and covariance back in the world.
     #[inline]
-    pub fn to_world(
+    pub fn world_posterior(
         &self,
         prior_mean: &[f64; 3],
         corr: &SVector<f64, D>,
@@ -221,7 +221,7 @@ impl<const D: usize> Frame<D> {
 
     /// A world posterior in the frame: (correction, covariance).
     #[inline]
-    pub fn from_world(
+    pub fn frame_posterior(
         &self,
         prior_mean: &[f64; 3],
         post: &LandmarkGaussian,

@@ -114,9 +114,9 @@ impl MlpUpdater {
                     .predict(&feats[..self.n_in], &mut out[..self.n_out]);
                 let (corr, cov) = f.los_decode(&out[..self.n_out]);
                 match self.model.covariance {
-                    CovarianceSource::Network => f.to_world(&inp.prior.mean, &corr, &cov),
+                    CovarianceSource::Network => f.world_posterior(&inp.prior.mean, &corr, &cov),
                     CovarianceSource::ClosedForm => {
-                        f.to_world(&inp.prior.mean, &corr, &f.closed_form_cov(&inn))
+                        f.world_posterior(&inp.prior.mean, &corr, &f.closed_form_cov(&inn))
                     }
                 }
             }
@@ -125,7 +125,8 @@ impl MlpUpdater {
                 self.model
                     .predict(&feats[..self.n_in], &mut out[..self.n_out]);
                 let cov = f.closed_form_cov(&inn);
-                let mut post = f.to_world(&inp.prior.mean, &SVector::<f64, D>::zeros(), &cov);
+                let mut post =
+                    f.world_posterior(&inp.prior.mean, &SVector::<f64, D>::zeros(), &cov);
                 post.mean[..D].copy_from_slice(&out[..D]);
                 post
             }
@@ -197,7 +198,7 @@ pub(crate) fn closed_form_update<const D: usize>(
     let corr = k * f.nu;
     let cov = f.closed_form_cov(&inn);
     Some((
-        f.to_world(prior_mean, &corr, &cov),
+        f.world_posterior(prior_mean, &corr, &cov),
         inn.log_likelihood,
         inn.mahalanobis2,
     ))

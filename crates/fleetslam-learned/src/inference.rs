@@ -5,7 +5,7 @@
 //! | output | `line_of_sight` (default preset) | `paper` preset |
 //! |---|---|---|
 //! | posterior mean | network (correction in the measurement frame) | network (world coordinates) |
-//! | posterior covariance | network (Cholesky factor: always positive definite) | EKF closed form `Σ − Σ S⁻¹ Σ` (the paper's single covariance element cannot form a covariance) |
+//! | posterior covariance | network (Cholesky factor: always positive definite), or the closed form with `covariance: closed_form` | EKF closed form `Σ − Σ S⁻¹ Σ` (the paper's single covariance element cannot form a covariance) |
 //! | log-likelihood (particle weight) | closed form `ln N(ν; 0, Σ + Q)` | same |
 //! | squared Mahalanobis distance (gating) | closed form `νᵀ (Σ + Q)⁻¹ ν` | same |
 //! | new landmark | inverse measurement with the model's noise (as the EKF) | same |

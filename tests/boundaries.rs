@@ -55,3 +55,46 @@ fn check_crate(krate: &str) {
         );
     }
 }
+
+/// The learned updater's inference path (default features: what the server links) builds
+/// without burn; only its `train` feature brings burn in.
+#[test]
+fn learned_updater_without_train_feature_has_no_burn() {
+    let tree = |features: &[&str]| -> Vec<String> {
+        let mut args = vec![
+            "tree",
+            "-p",
+            "fleetslam-learned",
+            "-e",
+            "normal,build",
+            "--prefix",
+            "none",
+            "--format",
+            "{p}",
+            "--offline",
+        ];
+        args.extend_from_slice(features);
+        let out = Command::new(env!("CARGO"))
+            .args(&args)
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .output()
+            .expect("running cargo tree");
+        assert!(
+            out.status.success(),
+            "cargo tree failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8_lossy(&out.stdout)
+            .lines()
+            .filter_map(|l| l.split_whitespace().next().map(str::to_string))
+            .collect()
+    };
+    let plain = tree(&[]);
+    assert!(plain.iter().any(|n| n == "fleetslam-core"), "{plain:?}");
+    assert!(
+        !plain.iter().any(|n| n.starts_with("burn")),
+        "fleetslam-learned without `train` must not depend on burn: {plain:?}"
+    );
+    let with_train = tree(&["--features", "train"]);
+    assert!(with_train.iter().any(|n| n == "burn"), "{with_train:?}");
+}

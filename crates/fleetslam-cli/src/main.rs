@@ -17,7 +17,10 @@ use fleetslam_localize::{LateJoinSlam, LocalizeConfig, Policy};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 
+mod chart;
+mod experiment;
 mod history;
+mod learned;
 mod replay;
 
 #[derive(Debug, Parser)]
@@ -52,7 +55,14 @@ enum Command {
     Export(history::ExportArgs),
     /// Delete a run and all its data.
     Delete(history::DeleteArgs),
-    /// Reproduce an experiment: `rtpf` (the real-time particle filter paper's, simulated).
+    /// Train an MLP landmark updater (burn) on logged landmark updates.
+    Train(learned::TrainArgs),
+    /// Write the training rows of stored runs as an NDJSON dataset.
+    ExportTraining(learned::ExportTrainingArgs),
+    /// ns per landmark update of the EKF and MLP models, and whole runs with each.
+    BenchUpdaters(learned::BenchArgs),
+    /// Reproduce an experiment: `rtpf` (the real-time particle filter paper's), `paper`
+    /// (the FastSLAM-MLP paper's four), `mrclam` (EKF against the learned updaters).
     Experiment {
         #[command(subcommand)]
         which: ExperimentCommand,
@@ -65,6 +75,10 @@ enum ExperimentCommand {
     /// records: baseline, skip, naive, uniform and rtpf. Writes errors.csv, times.csv,
     /// speedup.csv and rtpf.png into OUT.
     Rtpf(RtpfArgs),
+    /// The FastSLAM-MLP paper's four experiments (Vidal & Rosa 2015, Sec. 5) in simulation.
+    Paper(experiment::PaperArgs),
+    /// MRCLAM Dataset 6 with models trained on simulated data only.
+    Mrclam(experiment::MrclamArgs),
 }
 
 #[derive(Debug, Args)]
@@ -162,6 +176,10 @@ struct ReplayArgs {
     /// Leave the run open when the log is done (default: end it if the replay created it).
     #[arg(long)]
     keep_open: bool,
+    /// The new run stores this fraction of its landmark updates as training rows for the
+    /// learned updater (`fleetslam export-training`).
+    #[arg(long)]
+    log_training: Option<f64>,
     /// A ground-truth directory (as `import` and `simulate` write) to upload with the run,
     /// for the dashboard's overlay and GET /v1/runs/{id}/evaluation.
     #[arg(long)]
@@ -271,9 +289,12 @@ struct RunArgs {
     config: Option<PathBuf>,
     #[arg(long)]
     particles: Option<usize>,
-    /// Landmark updater: `ekf`.
+    /// Landmark updater: `ekf`, or an MLP model file (`model.json` or a `fleetslam train`
+    /// output directory).
     #[arg(long, default_value = "ekf")]
     updater: String,
+    #[command(flatten)]
+    learned: learned::RunLearnedArgs,
     #[arg(long)]
     seed: Option<u64>,
     /// FastSLAM version.
@@ -337,9 +358,18 @@ fn main() -> Result<()> {
         Command::Runs(a) => runtime()?.block_on(history::cmd_runs(a)),
         Command::Export(a) => runtime()?.block_on(history::cmd_export(a)),
         Command::Delete(a) => runtime()?.block_on(history::cmd_delete(a)),
-        Command::Experiment {
-            which: ExperimentCommand::Rtpf(a),
-        } => cmd_experiment_rtpf(a),
+        Command::Train(a) => learned::cmd_train(a),
+        Command::ExportTraining(a) => learned::cmd_export_training(a),
+        Command::BenchUpdaters(a) => learned::cmd_bench_updaters(a),
+        Command::Experiment { which } => match which {
+            ExperimentCommand::Rtpf(a) => cmd_experiment_rtpf(a),
+            ExperimentCommand::Paper(a) => {
+                experiment::cmd_experiment(experiment::ExperimentCommand::Paper(a))
+            }
+            ExperimentCommand::Mrclam(a) => {
+                experiment::cmd_experiment(experiment::ExperimentCommand::Mrclam(a))
+            }
+        },
     }
 }
 
@@ -460,9 +490,8 @@ fn cmd_run(a: RunArgs) -> Result<()> {
             Association::Unknown
         };
     }
-    if a.updater != "ekf" {
-        bail!("unknown updater {:?}: this build has `ekf`", a.updater);
-    }
+    let updater = learned::updater_from_spec(&a.updater, &mut cfg)?;
+    let (updater, recorder) = learned::maybe_record(updater, &a.learned)?;
     let which = if a.trajectory == "best" {
         TrajectoryEstimate::Best
     } else {
@@ -477,7 +506,7 @@ fn cmd_run(a: RunArgs) -> Result<()> {
     if let Some(p) = a.policy {
         localize.policy = p.into();
     }
-    let slam = FastSlam::new(cfg).context("configuring the filter")?;
+    let slam = FastSlam::with_updater(cfg, updater).context("configuring the filter")?;
     let mut run = LateJoinSlam::from_slam(slam, localize.clone())
         .context("configuring the localization of joining robots")?;
     let opts = JoinOptions {
@@ -497,6 +526,7 @@ fn cmd_run(a: RunArgs) -> Result<()> {
     bar.finish_and_clear();
     out.write(&a.out)
         .with_context(|| format!("writing {}", a.out.display()))?;
+    learned::write_recorded(recorder.as_deref(), &a.learned)?;
     let m = &out.metrics;
     println!(
         "{} steps in {:.2} s (step p50 {:.3} ms, p95 {:.3} ms, max {:.3} ms); {} landmark updates at {:.0} ns each; {} landmarks; {} resamples -> {}",
@@ -650,6 +680,7 @@ fn replay_options(a: &ReplayArgs) -> Result<replay::ReplayOptions> {
         },
         batch: a.batch,
         progress: true,
+        training_rate: a.log_training,
     })
 }
 
@@ -717,6 +748,7 @@ async fn cmd_demo(a: DemoArgs) -> Result<()> {
                 pace: replay::Pace::Scaled(a.speed),
                 batch: 50,
                 progress: false,
+                training_rate: None,
             };
             let (run, tokens) = replay::setup(&sim.log, &o).await?;
             replay::put_truth(&o, &run, &sim.truth).await?;

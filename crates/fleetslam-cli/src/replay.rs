@@ -34,6 +34,8 @@ pub struct ReplayOptions {
     /// Most records per request.
     pub batch: usize,
     pub progress: bool,
+    /// A new run logs this fraction of its landmark updates as training rows.
+    pub training_rate: Option<f64>,
 }
 
 #[derive(Debug, Default, serde::Serialize)]
@@ -138,7 +140,12 @@ pub async fn setup(log: &Log, o: &ReplayOptions) -> Result<(String, Vec<(String,
                 &c,
                 &format!("{base}/v1/runs"),
                 o.admin_token.as_deref(),
-                &json!({"name": log.header.name, "header": log.header, "config": o.config}),
+                &json!({
+                    "name": log.header.name,
+                    "header": log.header,
+                    "config": o.config,
+                    "training": o.training_rate.map(|rate| json!({"rate": rate})),
+                }),
             )
             .await?;
             v["id"]

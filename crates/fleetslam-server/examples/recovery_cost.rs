@@ -179,7 +179,11 @@ fn main() {
         let snap = RunSnapshot::decode(&latest.data).unwrap();
         let decode_ms = t.elapsed().as_secs_f64() * 1e3;
         let t = Instant::now();
-        let filter = fleetslam_server::history::restore_filter(snap.filter.clone()).unwrap();
+        let updater = fleetslam_server::history::updater_for(&store, &snap.filter.slam.config)
+            .await
+            .unwrap();
+        let filter =
+            fleetslam_server::history::restore_filter(snap.filter.clone(), updater).unwrap();
         let restore_ms = t.elapsed().as_secs_f64() * 1e3;
         let t = Instant::now();
         let captured = filter.snapshot();

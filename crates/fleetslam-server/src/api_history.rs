@@ -485,7 +485,8 @@ pub async fn rerun(
         Some(s) => history::RunSnapshot::decode(&s.data)?.filter.localize,
         None => fleetslam_localize::LocalizeConfig::default(),
     };
-    let filter = history::new_filter(&config, localize)?;
+    let updater = history::updater_for(&state.store, &config).await?;
+    let filter = history::new_filter(&config, localize, updater)?;
     let id = uuid::Uuid::new_v4().to_string();
     let name = req
         .name
@@ -503,7 +504,14 @@ pub async fn rerun(
         state.store.put_artifact(&id, TRUTH, &truth).await?;
     }
     let live = state
-        .insert_live(id.clone(), config.clone(), filter, None, HashMap::new())
+        .insert_live(
+            id.clone(),
+            config.clone(),
+            filter,
+            None,
+            HashMap::new(),
+            None,
+        )
         .await;
     for r in state.store.robots(&run).await? {
         let start: Option<PoseGaussian> = r
@@ -594,4 +602,12 @@ pub async fn delete_run(
     } else {
         Err(ApiError::NotFound(format!("no run {run}")))
     }
+}
+
+/// `GET /v1/models`: the learned models in the store (without their weights).
+#[utoipa::path(get, path = "/v1/models", tag = "runs",
+    responses((status = 200, description = "{\"models\": [{id, kind, config, metrics, weights_len, created_at}]}: a run uses one with config.updater = id")))]
+pub async fn list_models(State(state): State<AppState>) -> Result<Json<Value>, ApiError> {
+    let models = state.store.list_models().await?;
+    Ok(Json(json!({ "models": models })))
 }

@@ -86,6 +86,10 @@ impl AppState {
         filter: fleetslam_localize::LateJoinSlam,
         recovered: Option<coordinator::Recovered>,
         tokens: HashMap<String, String>,
+        training: Option<(
+            fleetslam_learned::RecordingConfig,
+            Arc<fleetslam_learned::RecordingUpdater>,
+        )>,
     ) -> Arc<LiveRun> {
         let handle = coordinator::spawn(
             id.clone(),
@@ -93,6 +97,7 @@ impl AppState {
             self.store.clone(),
             self.config.coordinator.clone(),
             recovered,
+            training,
         );
         let live = Arc::new(LiveRun {
             handle,
@@ -151,6 +156,7 @@ pub fn app(state: AppState) -> Router {
         .route("/v1/runs/{run}/evaluation", get(api_history::evaluation))
         .route("/v1/runs/{run}/export", get(api_history::export))
         .route("/v1/runs/{run}/rerun", post(api_history::rerun))
+        .route("/v1/models", get(api_history::list_models))
         .fallback_service(tower_http::services::ServeDir::new(&state.config.web_dir))
         .layer(DefaultBodyLimit::max(limit))
         .layer(axum::middleware::from_fn_with_state(
@@ -222,6 +228,10 @@ pub struct CreateRun {
     /// (samples, KLD-sampling, convergence, real-time policy).
     #[schema(value_type = Option<Object>)]
     pub localize: Option<serde_json::Value>,
+    /// Log a sample of the landmark updates as training rows for the learned updater:
+    /// `{"rate": 0.05, "cap": 200000, "seed": 0}` (any of them). Off when absent.
+    #[schema(value_type = Option<Object>)]
+    pub training: Option<serde_json::Value>,
 }
 
 #[derive(Debug, Serialize, utoipa::ToSchema)]
@@ -258,7 +268,15 @@ pub(crate) async fn create_run(
         req.localize.unwrap_or(serde_json::Value::Null),
     )
     .map_err(|e| ApiError::BadRequest(format!("localize: {e}")))?;
-    let filter = history::new_filter(&config, localize)?;
+    let training = req
+        .training
+        .map(|t| overlay(&fleetslam_learned::RecordingConfig::default(), t))
+        .transpose()
+        .map_err(|e| ApiError::BadRequest(format!("training: {e}")))?;
+    let updater = history::updater_for(&state.store, &config).await?;
+    let (updater, recorder) = history::recording(updater, training)?;
+    let filter = history::new_filter(&config, localize, updater)?;
+    let training = training.zip(recorder);
     let id = uuid::Uuid::new_v4().to_string();
     state
         .store
@@ -275,7 +293,14 @@ pub(crate) async fn create_run(
         })
         .await?;
     state
-        .insert_live(id.clone(), config.clone(), filter, None, HashMap::new())
+        .insert_live(
+            id.clone(),
+            config.clone(),
+            filter,
+            None,
+            HashMap::new(),
+            training,
+        )
         .await;
     tracing::info!(run = %id, "run created");
     Ok((StatusCode::CREATED, Json(RunCreated { id, config })))

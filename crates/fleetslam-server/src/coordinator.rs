@@ -15,6 +15,7 @@ use crate::merge::{MergeError, Merger, OrderKey};
 use fleetslam_core::filter::StepReport;
 use fleetslam_core::log::Record;
 use fleetslam_core::pose::{Pose2, PoseGaussian};
+use fleetslam_learned::{RecordingConfig, RecordingUpdater};
 use fleetslam_localize::LateJoinSlam;
 use fleetslam_store::{NewObservation, NewSnapshot, Store};
 use serde::Serialize;
@@ -297,6 +298,7 @@ pub fn spawn(
     store: Store,
     cfg: CoordinatorConfig,
     recovered: Option<Recovered>,
+    training: Option<(RecordingConfig, Arc<RecordingUpdater>)>,
 ) -> RunHandle {
     let (tx, rx) = mpsc::channel(cfg.queue_capacity.max(1));
     let (events, _) = broadcast::channel(256);
@@ -312,6 +314,7 @@ pub fn spawn(
         trajectories: Arc::new(Trajectories::new()),
         all_step_ns: Vec::new(),
         snapshots,
+        training,
         status: "active".into(),
         step_ns: Vec::new(),
         last_publish: None,
@@ -348,18 +351,24 @@ pub fn spawn(
     }
 }
 
-/// A snapshot to write, and who waits for it.
-type SnapshotJob = (RunSnapshot, Option<oneshot::Sender<Result<(), ApiError>>>);
+/// A snapshot to write with the training rows recorded since the previous one, and who
+/// waits for it.
+type SnapshotJob = (
+    RunSnapshot,
+    Vec<String>,
+    Option<oneshot::Sender<Result<(), ApiError>>>,
+);
 
 /// Writes a run's snapshots one after another (so that a later one is never overwritten by
 /// an earlier one), encoding them off the async runtime.
 fn spawn_snapshot_writer(run: String, store: Store) -> mpsc::UnboundedSender<SnapshotJob> {
     let (tx, mut rx) = mpsc::unbounded_channel::<SnapshotJob>();
     tokio::spawn(async move {
-        while let Some((snap, reply)) = rx.recv().await {
+        while let Some((snap, rows, reply)) = rx.recv().await {
             let applied = snap.applied;
             let t = snap.filed_t();
             let res = async {
+                store.append_training(&run, &rows).await?;
                 let data = tokio::task::spawn_blocking(move || snap.encode())
                     .await
                     .map_err(ApiError::internal)??;
@@ -401,6 +410,9 @@ struct Coordinator {
     /// Every step time of this process's life of the run [ns].
     all_step_ns: Vec<u64>,
     snapshots: mpsc::UnboundedSender<SnapshotJob>,
+    /// The run logs a sample of its landmark updates as training rows: they are stored with
+    /// each snapshot, so a recovery re-records exactly those after the latest one.
+    training: Option<(RecordingConfig, Arc<RecordingUpdater>)>,
     status: String,
     step_ns: Vec<u64>,
     last_publish: Option<Instant>,
@@ -501,9 +513,15 @@ impl Coordinator {
                 .applied_key()
                 .map(|k| (k.t(), k.robot().to_string(), k.seq())),
             trajectories: (*self.trajectories).clone(),
+            training: self.training.as_ref().map(|(c, _)| *c),
         };
+        let rows = self.training.as_ref().map_or_else(Vec::new, |(_, r)| {
+            r.drain_rows().iter().map(|row| row.to_json()).collect()
+        });
         self.last_snapshot = self.applied;
-        if let Err(mpsc::error::SendError((_, Some(reply)))) = self.snapshots.send((snap, reply)) {
+        if let Err(mpsc::error::SendError((_, _, Some(reply)))) =
+            self.snapshots.send((snap, rows, reply))
+        {
             let _ = reply.send(Err(ApiError::internal(anyhow::anyhow!(
                 "the snapshot writer has stopped"
             ))));

@@ -7,15 +7,21 @@ use crate::coordinator::{LandmarkState, RobotStatus, RunState};
 use crate::error::ApiError;
 use crate::merge::OrderKey;
 use fleetslam_core::config::{EKF_UPDATER, FilterConfig};
+use fleetslam_core::ekf::EkfUpdater;
 use fleetslam_core::filter::FastSlam;
 use fleetslam_core::log::{Record, record_order};
 use fleetslam_core::pose::Pose2;
+use fleetslam_core::updater::LandmarkUpdater;
 use fleetslam_data::formats::{LandmarkRow, TrajectoryPoint, Truth};
+use fleetslam_learned::{
+    MlpModel, MlpUpdater, RecordingConfig, RecordingUpdater, STORE_MODEL_KIND,
+};
 use fleetslam_localize::{LateJoinSlam, LateJoinSnapshot, LocalizeConfig};
 use fleetslam_store::{MAX_RECORDS_PAGE, Store, StoredObservation};
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use std::collections::BTreeMap;
+use std::sync::Arc;
 
 /// Per-robot trajectories as `[t, x, y, theta]`: the robot's estimated (weighted mean) pose
 /// at its start and after each of its records, exactly as `fleetslam run` records them.
@@ -37,6 +43,9 @@ pub struct RunSnapshot {
     /// robot ordered before or at it is in `filter`, every later one is not.
     pub last: Option<(f64, String, u64)>,
     pub trajectories: Trajectories,
+    /// The sampling of landmark updates as training rows, when the run logs them.
+    #[serde(default)]
+    pub training: Option<RecordingConfig>,
 }
 
 impl RunSnapshot {
@@ -215,36 +224,78 @@ pub fn truth_from_json(body: &[u8]) -> Result<Truth, ApiError> {
     })
 }
 
-/// The landmark updater a configuration names. Only the EKF is built in; a learned model
-/// is refused with a message saying which updaters this server has.
-pub fn updater_check(config: &FilterConfig) -> Result<(), ApiError> {
+/// The landmark updater a configuration names: the EKF, or a learned model stored in the
+/// store (`fleetslam train --data-dir`), refused with a clear message when it is missing or
+/// was trained for another landmark kind, input layout or sensor noise.
+pub async fn updater_for(
+    store: &Store,
+    config: &FilterConfig,
+) -> Result<Arc<dyn LandmarkUpdater>, ApiError> {
     if config.updater == EKF_UPDATER {
-        Ok(())
-    } else {
-        Err(ApiError::BadRequest(format!(
-            "config: field `updater`: unknown updater {:?}: this server has `ekf`",
+        return Ok(Arc::new(EkfUpdater::new(
+            config.landmark_kind,
+            &config.sensor_noise,
+        )));
+    }
+    let refuse = |why: String| {
+        ApiError::BadRequest(format!(
+            "config: field `updater`: {why} (`ekf`, or the id of a stored model; list them with GET /v1/models)"
+        ))
+    };
+    let Some(row) = store.get_model(&config.updater).await? else {
+        return Err(refuse(format!(
+            "no model {:?} in the store",
             config.updater
-        )))
+        )));
+    };
+    if row.kind != STORE_MODEL_KIND {
+        return Err(refuse(format!(
+            "model {:?} is a {:?}, not a landmark updater",
+            row.id, row.kind
+        )));
+    }
+    let model = MlpModel::from_json(&row.weights)
+        .map_err(|e| ApiError::internal(anyhow::anyhow!("stored model {}: {e}", row.id)))?;
+    let updater = MlpUpdater::for_run(model, config).map_err(|e| refuse(e.to_string()))?;
+    Ok(Arc::new(updater))
+}
+
+/// Wraps `updater` so that a sample of its updates is kept as training rows, when asked.
+pub fn recording(
+    updater: Arc<dyn LandmarkUpdater>,
+    training: Option<RecordingConfig>,
+) -> Result<(Arc<dyn LandmarkUpdater>, Option<Arc<RecordingUpdater>>), ApiError> {
+    match training {
+        None => Ok((updater, None)),
+        Some(cfg) => {
+            let r = Arc::new(
+                RecordingUpdater::new(updater, cfg)
+                    .map_err(|e| ApiError::BadRequest(format!("training: {e}")))?,
+            );
+            Ok((r.clone(), Some(r)))
+        }
     }
 }
 
-/// A new run's filter for `config`, localizing robots that join at an unknown pose with
-/// `localize`.
+/// A new run's filter for `config` with `updater`, localizing robots that join at an
+/// unknown pose with `localize`.
 pub fn new_filter(
     config: &FilterConfig,
     localize: LocalizeConfig,
+    updater: Arc<dyn LandmarkUpdater>,
 ) -> Result<LateJoinSlam, ApiError> {
-    updater_check(config)?;
-    let slam =
-        FastSlam::new(config.clone()).map_err(|e| ApiError::BadRequest(format!("config: {e}")))?;
+    let slam = FastSlam::with_updater(config.clone(), updater)
+        .map_err(|e| ApiError::BadRequest(format!("config: {e}")))?;
     LateJoinSlam::from_slam(slam, localize)
         .map_err(|e| ApiError::BadRequest(format!("localize: {e}")))
 }
 
-/// Restores a filter from a snapshot with the updater its configuration names.
-pub fn restore_filter(s: LateJoinSnapshot) -> Result<LateJoinSlam, ApiError> {
-    updater_check(&s.slam.config)?;
-    LateJoinSlam::from_snapshot_ekf(s)
+/// Restores a filter from a snapshot with `updater` (the one its configuration names).
+pub fn restore_filter(
+    s: LateJoinSnapshot,
+    updater: Arc<dyn LandmarkUpdater>,
+) -> Result<LateJoinSlam, ApiError> {
+    LateJoinSlam::from_snapshot(s, updater)
         .map_err(|e| ApiError::internal(anyhow::anyhow!("restoring a snapshot: {e}")))
 }
 
@@ -317,7 +368,8 @@ pub async fn state_at(
     let snap = RunSnapshot::decode(&snap.data)?;
     let last = snap.last_key();
     let mut applied = snap.applied;
-    let mut filter = restore_filter(snap.filter)?;
+    let updater = updater_for(store, &snap.filter.slam.config).await?;
+    let mut filter = restore_filter(snap.filter, updater)?;
     let mut trajectories = snap.trajectories;
     let records = parse_records(&all_records(store, run).await?)?;
     let todo = records_after_snapshot(records, &filter, last.as_ref(), Some(t));

@@ -29,6 +29,7 @@ use utoipa::OpenApi;
         crate::api_history::export,
         crate::api_history::rerun,
         crate::api_history::delete_run,
+        crate::api_history::list_models,
     ),
     components(schemas(
         crate::error::ErrorBody,

@@ -43,18 +43,26 @@ async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> 
     let config: FilterConfig = serde_json::from_value(row.config.clone())
         .map_err(|e| ApiError::internal(anyhow::anyhow!("stored config: {e}")))?;
     let robots = store.robots(&row.id).await?;
-    let (mut filter, applied, last, mut trajectories) = match store.latest_snapshot(&row.id).await?
-    {
-        Some(s) => {
-            let snap = tokio::task::spawn_blocking(move || RunSnapshot::decode(&s.data))
+    let updater = history::updater_for(store, &config).await?;
+    let snap = match store.latest_snapshot(&row.id).await? {
+        Some(s) => Some(
+            tokio::task::spawn_blocking(move || RunSnapshot::decode(&s.data))
                 .await
-                .map_err(ApiError::internal)??;
+                .map_err(ApiError::internal)??,
+        ),
+        None => None,
+    };
+    let training_cfg = snap.as_ref().and_then(|s| s.training);
+    let (updater, recorder) = history::recording(updater, training_cfg)?;
+    let training = training_cfg.zip(recorder);
+    let (mut filter, applied, last, mut trajectories) = match snap {
+        Some(snap) => {
             let last = snap.last_key();
-            let filter = history::restore_filter(snap.filter)?;
+            let filter = history::restore_filter(snap.filter, updater)?;
             (filter, snap.applied, last, snap.trajectories)
         }
         None => (
-            history::new_filter(&config, LocalizeConfig::default())?,
+            history::new_filter(&config, LocalizeConfig::default(), updater)?,
             0,
             None,
             Trajectories::new(),
@@ -121,6 +129,7 @@ async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> 
                 pending,
             }),
             tokens,
+            training,
         )
         .await;
     Ok(n)

@@ -1,0 +1,339 @@
+//! The measurement frame, and the two input layouts built on it.
+//!
+//! Both landmark kinds have a frame in which the EKF's measurement Jacobian is the identity:
+//!
+//! - 3D points: the robot frame. `z = Rᵀ(m − p)` with `R` the heading rotation, so `H = Rᵀ`
+//!   and the update is a linear Kalman update of the rotated landmark with noise
+//!   `diag(σx², σy², σz²)`.
+//! - 2D range-bearing: the line-of-sight frame at the prior mean, in metres (along the line
+//!   of sight, across it). `H = diag(1, 1/r) R(φ)ᵀ`, so with the bearing innovation scaled by
+//!   the range `r` the update is again linear with `H = I` and noise `diag(σr², r² σb²)`.
+//!
+//! In that frame the innovation covariance is `S = Σ + Q`, the gain `K = Σ S⁻¹`, the
+//! correction `K ν` and the posterior covariance `Σ − K Σ` — exactly the EKF's update
+//! (its Joseph form equals this in exact arithmetic). The innovation likelihood the particle
+//! weight needs is `ln N(ν; 0, S)` (for range-bearing corrected by `ln r`, the Jacobian of the
+//! bearing scaling), again exactly the EKF's.
+//!
+//! The learned updater computes that likelihood in closed form (it is the particle weight:
+//! FastSLAM stays a proper particle filter whatever the network predicts), and lets the
+//! network predict the landmark's posterior.
+
+use fleetslam_core::pose::wrap_angle;
+use fleetslam_core::sensor::{LandmarkKind, SensorNoise};
+use fleetslam_core::updater::{LandmarkGaussian, UpdateInput};
+use nalgebra::{SMatrix, SVector};
+use serde::{Deserialize, Serialize};
+
+const LN_2PI: f64 = 1.837_877_066_409_345_3;
+
+/// How a model's inputs and outputs are laid out. A model trained for one layout can't be run
+/// with another: the updater refuses it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum InputLayout {
+    /// The paper's layout (Vidal & Rosa 2015, Fig. 1): inputs are the landmark's previous
+    /// world coordinates, the robot pose `(x, y, α)` and the observation (9 inputs for the 3D
+    /// stereo case, 7 for range-bearing); outputs are the landmark's new world coordinates
+    /// and one element of its covariance (`trace(Σ')/d`, the mean posterior variance).
+    Paper,
+    /// Our layout: everything in the measurement frame, whitened by the sensor noise.
+    /// Inputs `ln(σᵢ/qᵢ)`, the prior's correlations, and the innovation over its standard
+    /// deviation; outputs the correction over the prior standard deviation and the Cholesky
+    /// factor of the posterior covariance scaled by the prior standard deviations (log
+    /// diagonal, raw off-diagonal), so that any output is a valid covariance.
+    LineOfSight,
+}
+
+impl InputLayout {
+    /// The version of the feature definitions; bump it when they change so that old models
+    /// are refused instead of silently misread.
+    pub const VERSION: u32 = 1;
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            InputLayout::Paper => "paper",
+            InputLayout::LineOfSight => "line_of_sight",
+        }
+    }
+
+    /// (inputs, outputs) of a network for this layout and kind.
+    pub fn dims(self, kind: LandmarkKind) -> (usize, usize) {
+        let d = kind.dim();
+        match self {
+            InputLayout::Paper => (2 * d + 3, d + 1),
+            InputLayout::LineOfSight => (2 * d + d * (d - 1) / 2, 2 * d + d * (d - 1) / 2),
+        }
+    }
+
+    /// Names of the outputs, for reports.
+    pub fn output_names(self, kind: LandmarkKind) -> Vec<String> {
+        let d = kind.dim();
+        let ax = ["a", "b", "c"];
+        match self {
+            InputLayout::Paper => {
+                let mut v: Vec<String> = ["x_t", "y_t", "z_t"][..d]
+                    .iter()
+                    .map(|s| s.to_string())
+                    .collect();
+                v.push("P_ii".into());
+                v
+            }
+            InputLayout::LineOfSight => {
+                let mut v: Vec<String> = (0..d).map(|i| format!("dmean_{}", ax[i])).collect();
+                v.extend((0..d).map(|i| format!("ln_L_{}{}", ax[i], ax[i])));
+                for i in 0..d {
+                    for j in 0..i {
+                        v.push(format!("L_{}{}", ax[i], ax[j]));
+                    }
+                }
+                v
+            }
+        }
+    }
+}
+
+/// One update seen in its measurement frame.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Frame<const D: usize> {
+    /// World → frame rotation (rows are the frame's axes in world coordinates).
+    pub t: SMatrix<f64, D, D>,
+    /// Prior covariance in the frame.
+    pub sigma: SMatrix<f64, D, D>,
+    /// Noise variances in the frame.
+    pub q: SVector<f64, D>,
+    /// Innovation in the frame.
+    pub nu: SVector<f64, D>,
+    /// Added to the frame's log-likelihood to give the likelihood in measurement units.
+    pub ll_offset: f64,
+}
+
+#[inline]
+fn cov2(c: &[f64; 6]) -> SMatrix<f64, 2, 2> {
+    SMatrix::<f64, 2, 2>::new(c[0], c[1], c[1], c[3])
+}
+
+#[inline]
+fn cov3(c: &[f64; 6]) -> SMatrix<f64, 3, 3> {
+    SMatrix::<f64, 3, 3>::new(c[0], c[1], c[2], c[1], c[3], c[4], c[2], c[4], c[5])
+}
+
+/// The range-bearing frame; `None` when the prior mean sits on the robot.
+#[inline]
+pub(crate) fn frame2(inp: &UpdateInput, noise: &SensorNoise) -> Option<Frame<2>> {
+    let dx = inp.prior.mean[0] - inp.pose.x;
+    let dy = inp.prior.mean[1] - inp.pose.y;
+    let q = dx * dx + dy * dy;
+    if q.is_nan() || q < 1e-12 {
+        return None;
+    }
+    let r = q.sqrt();
+    let (c, s) = (dx / r, dy / r);
+    let t = SMatrix::<f64, 2, 2>::new(c, s, -s, c);
+    let sigma = t * cov2(&inp.prior.cov) * t.transpose();
+    let bearing = wrap_angle(dy.atan2(dx) - inp.pose.theta);
+    let nu = SVector::<f64, 2>::new(inp.z[0] - r, r * wrap_angle(inp.z[1] - bearing));
+    Some(Frame {
+        t,
+        sigma,
+        q: SVector::<f64, 2>::new(noise.range * noise.range, q * noise.bearing * noise.bearing),
+        nu,
+        ll_offset: r.ln(),
+    })
+}
+
+/// The 3D point frame (the robot frame).
+#[inline]
+pub(crate) fn frame3(inp: &UpdateInput, noise: &SensorNoise) -> Frame<3> {
+    let (s, c) = inp.pose.theta.sin_cos();
+    let t = SMatrix::<f64, 3, 3>::new(c, s, 0.0, -s, c, 0.0, 0.0, 0.0, 1.0);
+    let sigma = t * cov3(&inp.prior.cov) * t.transpose();
+    let m = &inp.prior.mean;
+    let d = SVector::<f64, 3>::new(m[0] - inp.pose.x, m[1] - inp.pose.y, m[2]);
+    let zhat = t * d;
+    let nu = SVector::<f64, 3>::new(inp.z[0], inp.z[1], inp.z[2]) - zhat;
+    let x = &noise.xyz;
+    Frame {
+        t,
+        sigma,
+        q: SVector::<f64, 3>::new(x[0] * x[0], x[1] * x[1], x[2] * x[2]),
+        nu,
+        ll_offset: 0.0,
+    }
+}
+
+/// The innovation statistics: `S = Σ + Q`, its inverse, `ln p(z)` and the squared Mahalanobis
+/// distance. `None` when `S` is not positive definite.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Innovation<const D: usize> {
+    pub s_inv: SMatrix<f64, D, D>,
+    pub log_likelihood: f64,
+    pub mahalanobis2: f64,
+}
+
+impl<const D: usize> Frame<D> {
+    #[inline]
+    pub fn innovation(&self) -> Option<Innovation<D>> {
+        let s = self.sigma + SMatrix::<f64, D, D>::from_diagonal(&self.q);
+        let chol = s.cholesky()?;
+        let det = chol.determinant();
+        let s_inv = chol.inverse();
+        let m2 = self.nu.dot(&(s_inv * self.nu));
+        let ll = -0.5 * m2 - 0.5 * D as f64 * LN_2PI - 0.5 * det.ln() + self.ll_offset;
+        Some(Innovation {
+            s_inv,
+            log_likelihood: ll,
+            mahalanobis2: m2,
+        })
+    }
+
+    /// The EKF posterior covariance in the frame, `Σ − Σ S⁻¹ Σ`, symmetrised.
+    #[inline]
+    pub fn closed_form_cov(&self, inn: &Innovation<D>) -> SMatrix<f64, D, D> {
+        let c = self.sigma - self.sigma * inn.s_inv * self.sigma;
+        (c + c.transpose()) * 0.5
+    }
+
+    /// A frame correction and covariance back in the world.
+    #[inline]
+    pub fn world_posterior(
+        &self,
+        prior_mean: &[f64; 3],
+        corr: &SVector<f64, D>,
+        cov: &SMatrix<f64, D, D>,
+    ) -> LandmarkGaussian {
+        let dw = self.t.transpose() * corr;
+        let cw = self.t.transpose() * cov * self.t;
+        let mut mean = *prior_mean;
+        for (m, d) in mean.iter_mut().zip(dw.iter()) {
+            *m += d;
+        }
+        if D == 2 {
+            LandmarkGaussian::from_2d(
+                [mean[0], mean[1]],
+                &nalgebra::Matrix2::new(cw[(0, 0)], cw[(0, 1)], cw[(1, 0)], cw[(1, 1)]),
+            )
+        } else {
+            let m3 = nalgebra::Matrix3::from_fn(|i, j| cw[(i, j)]);
+            LandmarkGaussian::from_3d(mean, &m3)
+        }
+    }
+
+    /// A world posterior in the frame: (correction, covariance).
+    #[inline]
+    pub fn frame_posterior(
+        &self,
+        prior_mean: &[f64; 3],
+        post: &LandmarkGaussian,
+    ) -> (SVector<f64, D>, SMatrix<f64, D, D>) {
+        let dw = SVector::<f64, D>::from_fn(|i, _| post.mean[i] - prior_mean[i]);
+        let cw = if D == 2 {
+            let c = cov2(&post.cov);
+            SMatrix::<f64, D, D>::from_fn(|i, j| c[(i, j)])
+        } else {
+            let c = cov3(&post.cov);
+            SMatrix::<f64, D, D>::from_fn(|i, j| c[(i, j)])
+        };
+        (self.t * dw, self.t * cw * self.t.transpose())
+    }
+
+    /// Prior standard deviations in the frame.
+    #[inline]
+    fn prior_std(&self) -> SVector<f64, D> {
+        SVector::<f64, D>::from_fn(|i, _| self.sigma[(i, i)].max(1e-300).sqrt())
+    }
+
+    /// The line-of-sight features: `ln(σᵢ/qᵢ)`, correlations `ρᵢⱼ` (i > j), and
+    /// `νᵢ / sqrt(σᵢ² + qᵢ²)`.
+    #[inline]
+    pub fn los_features(&self, out: &mut [f64]) {
+        let s = self.prior_std();
+        let mut k = 0;
+        for i in 0..D {
+            out[k] = (s[i] / self.q[i].sqrt()).ln();
+            k += 1;
+        }
+        for i in 0..D {
+            for j in 0..i {
+                out[k] = self.sigma[(i, j)] / (s[i] * s[j]);
+                k += 1;
+            }
+        }
+        for i in 0..D {
+            out[k] = self.nu[i] / (self.sigma[(i, i)] + self.q[i]).sqrt();
+            k += 1;
+        }
+    }
+
+    /// The line-of-sight targets of a known posterior (frame correction and covariance):
+    /// the correction over the prior standard deviation, then the Cholesky factor `L` of
+    /// `D⁻¹ Σ' D⁻¹` (`D` the prior standard deviations): `ln Lᵢᵢ`, then `Lᵢⱼ` (i > j).
+    /// `None` when the posterior is not positive definite.
+    pub fn los_targets(
+        &self,
+        corr: &SVector<f64, D>,
+        cov: &SMatrix<f64, D, D>,
+        out: &mut [f64],
+    ) -> Option<()> {
+        let s = self.prior_std();
+        let scaled = SMatrix::<f64, D, D>::from_fn(|i, j| cov[(i, j)] / (s[i] * s[j]));
+        let l = scaled.cholesky()?.l();
+        let mut k = 0;
+        for i in 0..D {
+            out[k] = corr[i] / s[i];
+            k += 1;
+        }
+        for i in 0..D {
+            out[k] = l[(i, i)].ln();
+            k += 1;
+        }
+        for i in 0..D {
+            for j in 0..i {
+                out[k] = l[(i, j)];
+                k += 1;
+            }
+        }
+        Some(())
+    }
+
+    /// Inverse of [`Frame::los_targets`]: a correction and a positive definite covariance
+    /// from network outputs (the log diagonal is clamped to ±20 so that `exp` stays finite).
+    #[inline]
+    pub fn los_decode(&self, out: &[f64]) -> (SVector<f64, D>, SMatrix<f64, D, D>) {
+        let s = self.prior_std();
+        let corr = SVector::<f64, D>::from_fn(|i, _| out[i] * s[i]);
+        let mut l = SMatrix::<f64, D, D>::zeros();
+        for i in 0..D {
+            l[(i, i)] = out[D + i].clamp(-20.0, 20.0).exp() * s[i];
+        }
+        let mut k = 2 * D;
+        for i in 0..D {
+            for j in 0..i {
+                l[(i, j)] = out[k] * s[i];
+                k += 1;
+            }
+        }
+        (corr, l * l.transpose())
+    }
+}
+
+/// The paper's inputs: prior mean (d), pose (3), observation (d).
+#[inline]
+pub(crate) fn paper_features(kind: LandmarkKind, inp: &UpdateInput, out: &mut [f64]) {
+    let d = kind.dim();
+    out[..d].copy_from_slice(&inp.prior.mean[..d]);
+    out[d] = inp.pose.x;
+    out[d + 1] = inp.pose.y;
+    out[d + 2] = inp.pose.theta;
+    out[d + 3..2 * d + 3].copy_from_slice(&inp.z[..d]);
+}
+
+/// The paper's targets: posterior mean (d) and the mean posterior variance `trace(Σ')/d`.
+pub(crate) fn paper_targets(kind: LandmarkKind, post: &LandmarkGaussian, out: &mut [f64]) {
+    let d = kind.dim();
+    out[..d].copy_from_slice(&post.mean[..d]);
+    out[d] = match kind {
+        LandmarkKind::RangeBearing2d => (post.cov[0] + post.cov[3]) / 2.0,
+        LandmarkKind::Point3d => (post.cov[0] + post.cov[3] + post.cov[5]) / 3.0,
+    };
+}

@@ -86,10 +86,7 @@ impl AppState {
         filter: fleetslam_localize::LateJoinSlam,
         recovered: Option<coordinator::Recovered>,
         tokens: HashMap<String, String>,
-        training: Option<(
-            fleetslam_learned::RecordingConfig,
-            Arc<fleetslam_learned::RecordingUpdater>,
-        )>,
+        training: Option<history::Training>,
     ) -> Arc<LiveRun> {
         let handle = coordinator::spawn(
             id.clone(),
@@ -274,9 +271,8 @@ pub(crate) async fn create_run(
         .transpose()
         .map_err(|e| ApiError::BadRequest(format!("training: {e}")))?;
     let updater = history::updater_for(&state.store, &config).await?;
-    let (updater, recorder) = history::recording(updater, training)?;
+    let (updater, training) = history::recording(updater, training)?;
     let filter = history::new_filter(&config, localize, updater)?;
-    let training = training.zip(recorder);
     let id = uuid::Uuid::new_v4().to_string();
     state
         .store

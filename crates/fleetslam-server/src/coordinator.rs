@@ -15,7 +15,6 @@ use crate::merge::{MergeError, Merger, OrderKey};
 use fleetslam_core::filter::StepReport;
 use fleetslam_core::log::Record;
 use fleetslam_core::pose::{Pose2, PoseGaussian};
-use fleetslam_learned::{RecordingConfig, RecordingUpdater};
 use fleetslam_localize::LateJoinSlam;
 use fleetslam_store::{NewObservation, NewSnapshot, Store};
 use serde::Serialize;
@@ -298,7 +297,7 @@ pub fn spawn(
     store: Store,
     cfg: CoordinatorConfig,
     recovered: Option<Recovered>,
-    training: Option<(RecordingConfig, Arc<RecordingUpdater>)>,
+    training: Option<history::Training>,
 ) -> RunHandle {
     let (tx, rx) = mpsc::channel(cfg.queue_capacity.max(1));
     let (events, _) = broadcast::channel(256);
@@ -412,7 +411,7 @@ struct Coordinator {
     snapshots: mpsc::UnboundedSender<SnapshotJob>,
     /// The run logs a sample of its landmark updates as training rows: they are stored with
     /// each snapshot, so a recovery re-records exactly those after the latest one.
-    training: Option<(RecordingConfig, Arc<RecordingUpdater>)>,
+    training: Option<history::Training>,
     status: String,
     step_ns: Vec<u64>,
     last_publish: Option<Instant>,

@@ -260,11 +260,14 @@ pub async fn updater_for(
     Ok(Arc::new(updater))
 }
 
+/// How a run logs training rows: its sampling and the recorder that holds them.
+pub type Training = (RecordingConfig, Arc<RecordingUpdater>);
+
 /// Wraps `updater` so that a sample of its updates is kept as training rows, when asked.
 pub fn recording(
     updater: Arc<dyn LandmarkUpdater>,
     training: Option<RecordingConfig>,
-) -> Result<(Arc<dyn LandmarkUpdater>, Option<Arc<RecordingUpdater>>), ApiError> {
+) -> Result<(Arc<dyn LandmarkUpdater>, Option<Training>), ApiError> {
     match training {
         None => Ok((updater, None)),
         Some(cfg) => {
@@ -272,7 +275,7 @@ pub fn recording(
                 RecordingUpdater::new(updater, cfg)
                     .map_err(|e| ApiError::BadRequest(format!("training: {e}")))?,
             );
-            Ok((r.clone(), Some(r)))
+            Ok((r.clone(), Some((cfg, r))))
         }
     }
 }

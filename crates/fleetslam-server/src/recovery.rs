@@ -53,8 +53,7 @@ async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> 
         None => None,
     };
     let training_cfg = snap.as_ref().and_then(|s| s.training);
-    let (updater, recorder) = history::recording(updater, training_cfg)?;
-    let training = training_cfg.zip(recorder);
+    let (updater, training) = history::recording(updater, training_cfg)?;
     let (mut filter, applied, last, mut trajectories) = match snap {
         Some(snap) => {
             let last = snap.last_key();

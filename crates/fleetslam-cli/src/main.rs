@@ -21,6 +21,7 @@ mod chart;
 mod experiment;
 mod history;
 mod learned;
+mod localize;
 mod replay;
 
 #[derive(Debug, Parser)]
@@ -55,6 +56,8 @@ enum Command {
     Export(history::ExportArgs),
     /// Delete a run and all its data.
     Delete(history::DeleteArgs),
+    /// Localization only: localize a log's robots in a fixed map (a finished run's).
+    Localize(localize::LocalizeArgs),
     /// Train an MLP landmark updater (burn) on logged landmark updates.
     Train(learned::TrainArgs),
     /// Write the training rows of stored runs as an NDJSON dataset.
@@ -358,6 +361,10 @@ fn main() -> Result<()> {
         Command::Runs(a) => runtime()?.block_on(history::cmd_runs(a)),
         Command::Export(a) => runtime()?.block_on(history::cmd_export(a)),
         Command::Delete(a) => runtime()?.block_on(history::cmd_delete(a)),
+        Command::Localize(a) => {
+            let cfg = layered(&LocalizeConfig::default(), a.localize_config())?;
+            localize::cmd_localize(a, cfg)
+        }
         Command::Train(a) => learned::cmd_train(a),
         Command::ExportTraining(a) => learned::cmd_export_training(a),
         Command::BenchUpdaters(a) => learned::cmd_bench_updaters(a),

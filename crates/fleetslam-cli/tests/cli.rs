@@ -235,3 +235,70 @@ fn experiment_rtpf_writes_its_tables_and_plot() {
     let png = std::fs::read(out.join("rtpf.png")).unwrap();
     assert_eq!(&png[1..4], b"PNG");
 }
+
+#[test]
+fn localize_in_a_finished_runs_map() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = |p: &str| dir.path().join(p).to_string_lossy().into_owned();
+    ok(&[
+        "simulate",
+        "--robots",
+        "2",
+        "--duration",
+        "60",
+        "--seed",
+        "8",
+        "--out",
+        &d("sim"),
+    ]);
+    ok(&[
+        "run",
+        &d("sim/log.ndjson"),
+        "--particles",
+        "50",
+        "--out",
+        &d("map"),
+    ]);
+    let before = std::fs::read_to_string(d("map/landmarks.csv")).unwrap();
+    let out = ok(&[
+        "localize",
+        &d("sim/log.ndjson"),
+        "--map",
+        &d("map"),
+        "--out",
+        &d("loc"),
+        "--seed",
+        "1",
+    ]);
+    assert!(out.contains("robot 1: localized at"), "{out}");
+    let summary = json(&dir.path().join("loc/localization.json"));
+    for r in summary["robots"].as_array().unwrap() {
+        assert_eq!(r["converged"], true, "{summary}");
+    }
+    // The localized trajectories end near the truth; the map is unchanged.
+    let eval = ok(&[
+        "evaluate",
+        &d("loc"),
+        "--truth",
+        &d("sim/truth"),
+        "--align",
+        "none",
+    ]);
+    let e = json(&dir.path().join("loc/evaluation.json"));
+    let ate = e["team"]["ate_rmse"].as_f64().unwrap();
+    assert!(ate < 1.5, "localization ATE {ate} m: {eval}");
+    assert_eq!(
+        before,
+        std::fs::read_to_string(d("map/landmarks.csv")).unwrap()
+    );
+    let bad = fleetslam(&[
+        "localize",
+        &d("sim/log.ndjson"),
+        "--map",
+        &d("nowhere"),
+        "--out",
+        &d("x"),
+    ]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("reading the map"));
+}

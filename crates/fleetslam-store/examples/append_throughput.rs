@@ -13,7 +13,6 @@ use std::error::Error;
 use std::time::{Duration, Instant};
 
 use fleetslam_store::{NewObservation, NewRun, Store};
-use sqlx::Connection;
 
 const WRITERS: usize = 5;
 
@@ -36,20 +35,15 @@ async fn main() -> Result<()> {
     match pg_url {
         Some(url) => {
             let name = format!("fleetslam_bench_{}", std::process::id());
-            let mut admin = sqlx::PgConnection::connect(&url).await?;
-            sqlx::query(&format!("CREATE DATABASE \"{name}\""))
-                .execute(&mut admin)
-                .await?;
+            let db = fleetslam_store::admin::create_postgres_database(&url, &name).await?;
             let result = async {
-                let store = Store::open(&with_database(&url, &name)).await?;
+                let store = Store::open(&db).await?;
                 let r = measure(&store, per_writer).await;
                 store.close().await;
                 r
             }
             .await;
-            sqlx::query(&format!("DROP DATABASE IF EXISTS \"{name}\" WITH (FORCE)"))
-                .execute(&mut admin)
-                .await?;
+            fleetslam_store::admin::drop_postgres_database(&url, &name).await?;
             result?;
         }
         None => println!("postgres: skipped (pass a postgres:// URL to measure it)"),
@@ -127,21 +121,4 @@ fn percentile(sorted: &[Duration], q: f64) -> Duration {
 
 fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1000.0
-}
-
-/// The URL of database `name` on the server of `url`.
-fn with_database(url: &str, name: &str) -> String {
-    let (base, query) = match url.split_once('?') {
-        Some((base, query)) => (base, Some(query)),
-        None => (url, None),
-    };
-    let host_start = base.find("://").map_or(0, |i| i + 3);
-    let base = match base[host_start..].find('/') {
-        Some(slash) => &base[..host_start + slash],
-        None => base,
-    };
-    match query {
-        Some(q) => format!("{base}/{name}?{q}"),
-        None => format!("{base}/{name}"),
-    }
 }

@@ -2,7 +2,7 @@
 //!
 //! Handlers send it commands over a bounded queue (full: the client gets 503 with
 //! Retry-After, nothing stored). The task drains what is queued, checks every record
-//! (repeat, too old, robot not merged yet), stores the accepted ones in ONE append (group
+//! (repeat, too old, out of time order), stores the accepted ones in ONE append (group
 //! commit: acknowledged means committed), answers each request, feeds the records to the
 //! deterministic [`Merger`], and applies what the merger releases on a blocking thread where
 //! the filter's rayon work runs, off the async runtime. The state it publishes is the
@@ -233,7 +233,6 @@ struct Acked {
     max: Option<u64>,
     last_t: Option<f64>,
     records: u64,
-    merged: bool,
 }
 
 impl Acked {
@@ -256,11 +255,8 @@ impl Acked {
     }
 
     /// The bookkeeping of a robot whose stored records have these seqs (seq -> t).
-    fn restore(seqs: &BTreeMap<u64, f64>, merged: bool) -> Self {
-        let mut a = Acked {
-            merged,
-            ..Default::default()
-        };
+    fn restore(seqs: &BTreeMap<u64, f64>) -> Self {
+        let mut a = Acked::default();
         for (&seq, &t) in seqs {
             a.insert(seq, t);
         }
@@ -282,9 +278,8 @@ pub struct Recovered {
     pub applied: u64,
     pub last: Option<OrderKey>,
     pub trajectories: Trajectories,
-    /// Every registered robot: its start time, whether it is merged, and its stored
-    /// records' seq -> t.
-    pub robots: Vec<(String, f64, bool, BTreeMap<u64, f64>)>,
+    /// Every registered robot: its start time and its stored records' seq -> t.
+    pub robots: Vec<(String, f64, BTreeMap<u64, f64>)>,
     /// Stored records not in the snapshot, to apply again (in any order).
     pub pending: Vec<Record>,
 }
@@ -328,12 +323,9 @@ pub fn spawn(
         task.last_snapshot = r.applied;
         task.trajectories = Arc::new(r.trajectories);
         task.merger.restore_applied(r.last);
-        for (robot, t0, merged, seqs) in &r.robots {
-            if *merged {
-                task.merger.restore_robot(robot, *t0, seqs, now);
-            }
-            task.acked
-                .insert(robot.clone(), Acked::restore(seqs, *merged));
+        for (robot, t0, seqs) in &r.robots {
+            task.merger.restore_robot(robot, *t0, seqs, now);
+            task.acked.insert(robot.clone(), Acked::restore(seqs));
         }
         for rec in r.pending {
             task.merger.restore_pending(rec);
@@ -620,13 +612,7 @@ impl Coordinator {
         let mode = filter.phase(&robot).map_or("mapping", |p| p.as_str());
         // Every robot's records go through the merge, in the one deterministic order.
         self.merger.add_robot(&robot, t0, 0, Instant::now());
-        self.acked.insert(
-            robot.clone(),
-            Acked {
-                merged: true,
-                ..Default::default()
-            },
-        );
+        self.acked.insert(robot.clone(), Acked::default());
         // A recovery restores robots from snapshots: store one that has this robot before
         // the registration is answered.
         let (tx, rx) = oneshot::channel();
@@ -668,9 +654,7 @@ impl Coordinator {
                     }));
                     continue;
                 }
-                if acked.merged
-                    && let Err(e) = self.merger.check(r)
-                {
+                if let Err(e) = self.merger.check(r) {
                     let msg = match e {
                         MergeError::TooOld { .. } => format!(
                             "{e} (reorder window {} ms)",
@@ -741,11 +725,9 @@ impl Coordinator {
             let acked = self.acked.get_mut(&rec.robot).expect("checked above");
             if !item.duplicate {
                 acked.insert(rec.seq, rec.t);
-                if acked.merged {
-                    // Checked above; the only failure left would be a bug.
-                    if let Err(e) = self.merger.push(rec.clone(), now) {
-                        tracing::error!(run = %self.id, error = %e, "merge refused a checked record");
-                    }
+                // Checked above; the only failure left would be a bug.
+                if let Err(e) = self.merger.push(rec.clone(), now) {
+                    tracing::error!(run = %self.id, error = %e, "merge refused a checked record");
                 }
             }
         }

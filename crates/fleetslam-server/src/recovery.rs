@@ -103,7 +103,6 @@ async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> 
             (
                 r.robot_id.clone(),
                 r.t0.unwrap_or(0.0),
-                true,
                 seqs.get(r.robot_id.as_str()).cloned().unwrap_or_default(),
             )
         })

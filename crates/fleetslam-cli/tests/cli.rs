@@ -1,28 +1,7 @@
 //! The `fleetslam` command end to end: simulate, run, evaluate, and clear errors.
 
-use std::path::Path;
-use std::process::{Command, Output};
-
-fn fleetslam(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_fleetslam"))
-        .args(args)
-        .output()
-        .expect("running fleetslam")
-}
-
-fn ok(args: &[&str]) -> String {
-    let out = fleetslam(args);
-    assert!(
-        out.status.success(),
-        "fleetslam {args:?} failed:\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
-
-fn json(path: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
-}
+mod common;
+use common::{fleetslam, json, ok};
 
 #[test]
 fn simulate_run_evaluate() {

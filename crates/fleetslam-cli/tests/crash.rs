@@ -4,21 +4,14 @@
 //! uninterrupted offline run's, bit for bit. On SQLite always, on PostgreSQL when
 //! FLEETSLAM_TEST_POSTGRES_URL is set.
 
+mod common;
+use common::{ok, serve};
 use std::io::{BufRead, BufReader};
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 const BIN: &str = env!("CARGO_BIN_EXE_fleetslam");
-
-struct Proc(Child);
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
 
 fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
@@ -26,26 +19,6 @@ fn free_port() -> u16 {
         .local_addr()
         .unwrap()
         .port()
-}
-
-/// `fleetslam serve` on `port` with `store` args; returns once it listens.
-fn serve(port: u16, store: &[String]) -> Proc {
-    let mut child = Command::new(BIN)
-        .args(["serve", "--bind", &format!("127.0.0.1:{port}")])
-        .args(store)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    assert!(
-        line.contains("serving"),
-        "the server did not start: {line:?}"
-    );
-    Proc(child)
 }
 
 fn get_json(rt: &tokio::runtime::Runtime, url: &str) -> serde_json::Value {
@@ -57,21 +30,10 @@ fn get_json(rt: &tokio::runtime::Runtime, url: &str) -> serde_json::Value {
     })
 }
 
-fn run_ok(args: &[&str]) -> String {
-    let out = Command::new(BIN).args(args).output().unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
-    assert!(
-        out.status.success(),
-        "fleetslam {args:?}: {stdout}\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    stdout
-}
-
-fn crash_and_resume(dir: &Path, store: &[String]) {
+fn crash_and_resume(dir: &Path, store: &[&str]) {
     let rt = tokio::runtime::Runtime::new().unwrap();
     let sim = dir.join("sim");
-    run_ok(&[
+    ok(&[
         "simulate",
         "--robots",
         "3",
@@ -86,7 +48,8 @@ fn crash_and_resume(dir: &Path, store: &[String]) {
     let records = std::fs::read_to_string(&log).unwrap().lines().count() - 1;
     let port = free_port();
     let url = format!("http://127.0.0.1:{port}");
-    let mut server = serve(port, store);
+    let bind = format!("127.0.0.1:{port}");
+    let (mut server, _) = serve(&bind, store);
 
     // The robots post in real time, 8x faster: the replay takes ~5 s.
     let mut replay = Command::new(BIN)
@@ -130,7 +93,7 @@ fn crash_and_resume(dir: &Path, store: &[String]) {
     server.0.kill().unwrap(); // SIGKILL
     server.0.wait().unwrap();
     std::thread::sleep(Duration::from_millis(500));
-    let _server = serve(port, store);
+    let _server = serve(&bind, store);
 
     // The client resumes by itself; it ends the run when its log is done.
     let deadline = Instant::now() + Duration::from_secs(120);
@@ -155,7 +118,7 @@ fn crash_and_resume(dir: &Path, store: &[String]) {
 
     // Every record exactly once; the result equals the uninterrupted offline run.
     let exported = dir.join("exported");
-    run_ok(&[
+    ok(&[
         "export",
         &run,
         "--server",
@@ -180,7 +143,7 @@ fn crash_and_resume(dir: &Path, store: &[String]) {
     keys.dedup();
     assert_eq!(keys.len(), records, "a record is stored twice");
     let offline = dir.join("offline");
-    run_ok(&[
+    ok(&[
         "run",
         log.to_str().unwrap(),
         "--particles",
@@ -207,10 +170,7 @@ fn crash_and_resume(dir: &Path, store: &[String]) {
 fn sigkill_mid_replay_sqlite() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
-    crash_and_resume(
-        dir.path(),
-        &["--data-dir".into(), data.to_str().unwrap().into()],
-    );
+    crash_and_resume(dir.path(), &["--data-dir", data.to_str().unwrap()]);
 }
 
 #[test]
@@ -230,7 +190,7 @@ fn sigkill_mid_replay_postgres() {
         .unwrap();
     let dir = tempfile::tempdir().unwrap();
     let outcome = std::panic::catch_unwind(|| {
-        crash_and_resume(dir.path(), &["--database-url".into(), db.clone()]);
+        crash_and_resume(dir.path(), &["--database-url", &db]);
     });
     rt.block_on(fleetslam_store::admin::drop_postgres_database(&url, &name))
         .unwrap();

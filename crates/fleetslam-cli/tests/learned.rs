@@ -1,29 +1,8 @@
 //! The learned updater's commands end to end: log training rows from a run, train a model,
 //! run with it, register it in a store, and refuse a model of another landmark kind.
 
-use std::path::Path;
-use std::process::{Command, Output};
-
-fn fleetslam(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_fleetslam"))
-        .args(args)
-        .output()
-        .expect("running fleetslam")
-}
-
-fn ok(args: &[&str]) -> String {
-    let out = fleetslam(args);
-    assert!(
-        out.status.success(),
-        "fleetslam {args:?} failed:\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
-
-fn json(path: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
-}
+mod common;
+use common::{fleetslam, json, ok};
 
 #[test]
 fn log_rows_train_and_run_with_the_model() {
@@ -125,23 +104,7 @@ fn log_rows_train_and_run_with_the_model() {
     assert!(out.contains("exported 0 training rows"), "{out}");
 
     // A server run with the stored model as its updater, logging its own training rows.
-    let mut server = std::process::Command::new(env!("CARGO_BIN_EXE_fleetslam"))
-        .args(["serve", "--bind", "127.0.0.1:0", "--data-dir", &d("store")])
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    std::io::BufRead::read_line(
-        &mut std::io::BufReader::new(server.stdout.take().unwrap()),
-        &mut line,
-    )
-    .unwrap();
-    let url = line
-        .split_whitespace()
-        .find(|w| w.starts_with("http://"))
-        .unwrap_or_else(|| panic!("no URL in {line:?}"))
-        .to_string();
+    let (server, url) = common::serve("127.0.0.1:0", &["--data-dir", &d("store")]);
     std::fs::write(d("mlp.json"), r#"{"updater": "cli-mlp", "particles": 30}"#).unwrap();
     let replayed = fleetslam(&[
         "replay",
@@ -165,8 +128,7 @@ fn log_rows_train_and_run_with_the_model() {
         &d("none.json"),
     ]);
     let runs = fleetslam(&["runs", "--server", &url, "--json"]);
-    let _ = server.kill();
-    let _ = server.wait();
+    drop(server);
     assert!(
         replayed.status.success(),
         "{}",

@@ -1,42 +1,7 @@
 //! `fleetslam serve` and `fleetslam replay` as separate processes over real HTTP.
 
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
-
-struct Server(Child);
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-/// Starts `fleetslam serve` on a free port; returns the process and its base URL.
-fn serve(data: &std::path::Path) -> (Server, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_fleetslam"))
-        .args([
-            "serve",
-            "--bind",
-            "127.0.0.1:0",
-            "--data-dir",
-            data.to_str().unwrap(),
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let url = line
-        .split_whitespace()
-        .find(|w| w.starts_with("http://"))
-        .unwrap_or_else(|| panic!("no URL in {line:?}"))
-        .to_string();
-    (Server(child), url)
-}
+mod common;
+use std::process::Command;
 
 #[test]
 fn replay_into_a_served_run() {
@@ -60,7 +25,8 @@ fn replay_into_a_served_run() {
         .lines()
         .count()
         - 1;
-    let (_server, url) = serve(&dir.path().join("data"));
+    let data = dir.path().join("data");
+    let (_server, url) = common::serve("127.0.0.1:0", &["--data-dir", data.to_str().unwrap()]);
     let out = Command::new(env!("CARGO_BIN_EXE_fleetslam"))
         .args([
             "replay",

@@ -1,0 +1,61 @@
+//! Shared by the command's tests: run `fleetslam`, read its JSON, start `fleetslam serve`.
+#![allow(dead_code)]
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Output, Stdio};
+
+pub fn fleetslam(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_fleetslam"))
+        .args(args)
+        .output()
+        .expect("running fleetslam")
+}
+
+/// Runs `fleetslam args`, which must succeed; returns its standard output.
+pub fn ok(args: &[&str]) -> String {
+    let out = fleetslam(args);
+    assert!(
+        out.status.success(),
+        "fleetslam {args:?} failed:\n{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+pub fn json(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+/// A `fleetslam serve` process, killed (SIGKILL) on drop.
+pub struct Server(pub Child);
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Starts `fleetslam serve --bind BIND` with `store` arguments (`--data-dir DIR` or
+/// `--database-url URL`); returns once it listens, with its base URL.
+pub fn serve(bind: &str, store: &[&str]) -> (Server, String) {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_fleetslam"))
+        .args(["serve", "--bind", bind])
+        .args(store)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let url = line
+        .split_whitespace()
+        .find(|w| w.starts_with("http://"))
+        .unwrap_or_else(|| panic!("the server did not start: {line:?}"))
+        .to_string();
+    (Server(child), url)
+}

@@ -72,6 +72,19 @@ struct View {
     metrics: Option<Value>,
 }
 
+impl View {
+    /// The run's trajectories and landmarks as the files `fleetslam run` writes.
+    fn estimate(&self) -> Result<fleetslam_data::formats::Truth, ApiError> {
+        let landmarks: Vec<crate::coordinator::LandmarkState> =
+            serde_json::from_value(self.state.get("landmarks").cloned().unwrap_or(json!([])))
+                .map_err(ApiError::internal)?;
+        Ok(history::to_truth(
+            &self.trajectories,
+            &history::landmark_rows(&landmarks),
+        ))
+    }
+}
+
 async fn view(state: &AppState, run: &str) -> Result<View, ApiError> {
     let live = state.runs.read().await.get(run).cloned();
     if let Some(live) = live {
@@ -258,10 +271,7 @@ pub async fn evaluation(
     let truth = history::truth_from_json(truth.as_bytes())
         .map_err(|e| ApiError::internal(anyhow::anyhow!("stored truth: {e}")))?;
     let v = view(&state, &run).await?;
-    let landmarks: Vec<crate::coordinator::LandmarkState> =
-        serde_json::from_value(v.state.get("landmarks").cloned().unwrap_or(json!([])))
-            .map_err(ApiError::internal)?;
-    let est = history::to_truth(&v.trajectories, &history::landmark_rows(&landmarks));
+    let est = v.estimate()?;
     let shared = shared_frame(&state.store, &row).await?;
     let eval = evaluate(&est, &truth, shared, &EvalOptions::default());
     Ok(Json(
@@ -337,10 +347,7 @@ pub async fn export(
 ) -> Result<Response, ApiError> {
     let row = run_row(&state.store, &run).await?;
     let v = view(&state, &run).await?;
-    let landmarks: Vec<crate::coordinator::LandmarkState> =
-        serde_json::from_value(v.state.get("landmarks").cloned().unwrap_or(json!([])))
-            .map_err(ApiError::internal)?;
-    let est = history::to_truth(&v.trajectories, &history::landmark_rows(&landmarks));
+    let est = v.estimate()?;
     let csv = || {
         let mut b = Vec::new();
         write_landmarks_csv(&mut b, &est.landmarks).map(|_| b)

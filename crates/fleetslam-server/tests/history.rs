@@ -282,28 +282,12 @@ async fn scrub_export_truth_rerun_and_delete() {
     assert_eq!(first["updater"], "ekf", "{first}");
 
     // Retention.
-    let (s, _) = h
-        .call(
-            "DELETE",
-            &format!("/v1/runs/{rerun}"),
-            None,
-            "application/json",
-            vec![],
-        )
-        .await;
+    let (s, _) = h.raw("DELETE", &format!("/v1/runs/{rerun}")).await;
     assert_eq!(s, StatusCode::NO_CONTENT);
     let (s, _) = h.get(&format!("/v1/runs/{rerun}/state")).await;
     assert_eq!(s, StatusCode::NOT_FOUND);
     assert_eq!(h.store.record_count(&rerun).await.unwrap(), 0);
-    let (s, _) = h
-        .call(
-            "DELETE",
-            &format!("/v1/runs/{rerun}"),
-            None,
-            "application/json",
-            vec![],
-        )
-        .await;
+    let (s, _) = h.raw("DELETE", &format!("/v1/runs/{rerun}")).await;
     assert_eq!(s, StatusCode::NOT_FOUND);
 }
 

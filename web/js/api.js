@@ -9,10 +9,31 @@ export class HttpError extends Error {
   }
 }
 
+// A server whose reads need a token is opened as `/?access_token=TOKEN`: the token is kept
+// for this tab (sessionStorage), removed from the address bar, and sent with every request.
+const TOKEN_KEY = "fleetslam.access_token";
+function readToken() {
+  try {
+    const url = new URL(location.href);
+    const t = url.searchParams.get("access_token");
+    if (t) {
+      sessionStorage.setItem(TOKEN_KEY, t);
+      url.searchParams.delete("access_token");
+      history.replaceState(null, "", url.pathname + url.search + url.hash);
+    }
+    return sessionStorage.getItem(TOKEN_KEY);
+  } catch (_) {
+    return null;
+  }
+}
+const accessToken = readToken();
+
 async function getJson(path, { optional = false } = {}) {
   let resp;
+  const headers = { Accept: "application/json" };
+  if (accessToken) headers.Authorization = `Bearer ${accessToken}`;
   try {
-    resp = await fetch(path, { headers: { Accept: "application/json" }, cache: "no-store" });
+    resp = await fetch(path, { headers, cache: "no-store" });
   } catch (e) {
     throw new HttpError(0, `the server cannot be reached (${e.message})`);
   }
@@ -64,7 +85,8 @@ export const getEvaluation = (id) =>
 /** The websocket URL of a run's live stream. */
 export function liveUrl(id) {
   const proto = location.protocol === "https:" ? "wss:" : "ws:";
-  return `${proto}//${location.host}/v1/runs/${enc(id)}/live`;
+  const q = accessToken ? `?access_token=${enc(accessToken)}` : "";
+  return `${proto}//${location.host}/v1/runs/${enc(id)}/live${q}`;
 }
 
 /**

@@ -25,8 +25,13 @@ pub struct Target {
     /// A `postgres://` or `sqlite://` store URL.
     #[arg(long, conflicts_with = "data_dir")]
     database_url: Option<String>,
+    /// Sent with every request: reads and, for `delete`, the admin action.
     #[arg(long, env = "FLEETSLAM_ADMIN_TOKEN")]
     admin_token: Option<String>,
+    /// Sent when no admin token is given: enough for `runs` and `export` on a server whose
+    /// reads need a token.
+    #[arg(long, env = "FLEETSLAM_READ_TOKEN")]
+    read_token: Option<String>,
 }
 
 enum Api {
@@ -46,7 +51,7 @@ impl Target {
         if let Some(s) = &self.server {
             return Ok(Api::Http {
                 base: s.trim_end_matches('/').to_string(),
-                admin: self.admin_token.clone(),
+                admin: self.admin_token.clone().or_else(|| self.read_token.clone()),
                 client: reqwest::Client::new(),
             });
         }

@@ -145,8 +145,13 @@ struct ServeArgs {
     data_dir: Option<PathBuf>,
     #[arg(long)]
     database_url: Option<String>,
+    /// Token for creating, ending and deleting runs and registering robots (at least 16
+    /// characters); required to serve a non-loopback address.
     #[arg(long)]
     admin_token: Option<String>,
+    /// Token for reading (state, runs, exports, metrics) when reads need one.
+    #[arg(long)]
+    read_token: Option<String>,
 }
 
 #[derive(Debug, Args)]
@@ -649,15 +654,18 @@ async fn cmd_serve(a: ServeArgs) -> Result<()> {
     if let Some(v) = a.admin_token {
         cfg.admin_token = Some(v);
     }
+    if let Some(v) = a.read_token {
+        cfg.read_token = Some(v);
+    }
     let running = fleetslam_server::server::start(&cfg).await?;
     println!(
         "fleetslam serving on http://{} (store: {})",
         running.addr,
         running.store.backend()
     );
-    tokio::select! {
-        r = tokio::signal::ctrl_c() => { r?; println!("stopping"); }
-    }
+    let signal = fleetslam_server::server::shutdown_signal().await?;
+    // On stderr: stdout may be a pipe nobody reads any more.
+    eprintln!("{signal}: stopping (answering requests under way, storing snapshots)");
     running.stop().await
 }
 
@@ -773,7 +781,7 @@ async fn cmd_demo(a: DemoArgs) -> Result<()> {
     };
     tokio::select! {
         r = demo => r?,
-        r = tokio::signal::ctrl_c() => { r?; println!("stopping"); }
+        r = fleetslam_server::server::shutdown_signal() => { println!("{}: stopping", r?); }
     }
     running.stop().await
 }

@@ -59,3 +59,83 @@ fn replay_into_a_served_run() {
         "the embedded store is created on first start"
     );
 }
+
+/// SIGTERM (what `docker stop` sends): the server answers what is under way, stores a final
+/// snapshot of each running run and exits 0; started again, the run is back at once from
+/// that snapshot, with nothing to replay.
+#[test]
+fn sigterm_stops_cleanly_with_final_snapshots() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = dir.path().join("sim");
+    common::ok(&[
+        "simulate",
+        "--robots",
+        "2",
+        "--duration",
+        "10",
+        "--seed",
+        "3",
+        "--out",
+        sim.to_str().unwrap(),
+    ]);
+    let records = std::fs::read_to_string(sim.join("log.ndjson"))
+        .unwrap()
+        .lines()
+        .count()
+        - 1;
+    let data = dir.path().join("data");
+    let store = ["--data-dir", data.to_str().unwrap()];
+    let (mut server, url) = common::serve("127.0.0.1:0", &store);
+    let out = common::ok(&[
+        "replay",
+        sim.join("log.ndjson").to_str().unwrap(),
+        "--server",
+        &url,
+        "--fast",
+        "--particles",
+        "30",
+        "--keep-open",
+    ]);
+    let run = out
+        .lines()
+        .find_map(|l| l.strip_prefix("run "))
+        .unwrap_or_else(|| panic!("no run id in {out}"))
+        .trim()
+        .to_string();
+    let state_url = format!("{url}/v1/runs/{run}/state");
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let applied = |url: &str| -> u64 {
+        rt.block_on(async {
+            let v: serde_json::Value = reqwest::get(url).await.unwrap().json().await.unwrap();
+            v["applied"].as_u64().unwrap()
+        })
+    };
+    // The robots are silent now: after the reorder window every record is applied.
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(30);
+    while applied(&state_url) < records as u64 {
+        assert!(std::time::Instant::now() < deadline, "records not applied");
+        std::thread::sleep(std::time::Duration::from_millis(200));
+    }
+    let term = Command::new("kill")
+        .args(["-TERM", &server.0.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(term.success());
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(30);
+    let status = loop {
+        if let Some(s) = server.0.try_wait().unwrap() {
+            break s;
+        }
+        assert!(std::time::Instant::now() < deadline, "no exit after SIGTERM");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    };
+    assert!(status.success(), "exit status {status}");
+    // Back at once: the final snapshot holds every record (without it, the recovered run
+    // would first show its registration snapshot's 0 records, then replay them once the
+    // 2 s reorder window has passed).
+    let (_server, url) = common::serve("127.0.0.1:0", &store);
+    assert_eq!(
+        applied(&format!("{url}/v1/runs/{run}/state")),
+        records as u64
+    );
+}

@@ -518,6 +518,7 @@ pub async fn rerun(
             None,
             HashMap::new(),
             None,
+            None,
         )
         .await;
     for r in state.store.robots(&run).await? {
@@ -527,22 +528,15 @@ pub async fn rerun(
             .map(serde_json::from_value)
             .transpose()
             .map_err(ApiError::internal)?;
+        // Nobody posts to a re-run: its robots' tokens are never shown.
         let token = hex::encode(rand::random::<[u8; 24]>());
-        state
-            .store
-            .add_robot(
-                &id,
-                &NewRobot {
-                    robot_id: r.robot_id.clone(),
-                    start: r.start.clone(),
-                    token_hash: token_hash(&token),
-                    t0: r.t0,
-                },
-            )
-            .await?;
-        live.handle
-            .add_robot(r.robot_id, start, r.t0.unwrap_or(0.0))
-            .await?;
+        let row = NewRobot {
+            robot_id: r.robot_id.clone(),
+            start: r.start.clone(),
+            token_hash: token_hash(&token),
+            t0: r.t0,
+        };
+        live.handle.add_robot(row, start, r.t0).await?;
     }
     let st = state.clone();
     let (src, dst) = (run.clone(), id.clone());

@@ -17,7 +17,8 @@ use fleetslam_core::log::{LogHeader, Record};
 use fleetslam_core::pose::PoseGaussian;
 use fleetslam_store::{NewRobot, NewRun, RunFilter, Store};
 use serde::{Deserialize, Serialize};
-use sha2::{Digest, Sha256};
+use crate::auth::AuthConfig;
+use crate::limits::Limits;
 use std::collections::HashMap;
 use std::sync::Arc;
 use tokio::sync::RwLock;
@@ -25,8 +26,10 @@ use tokio::sync::RwLock;
 /// Server-wide settings the handlers need.
 #[derive(Debug, Clone)]
 pub struct ApiConfig {
-    /// Required as `Authorization: Bearer <token>` to create and end runs, when set.
-    pub admin_token: Option<String>,
+    /// Tokens, who may read, allowed origins ([`crate::auth`]).
+    pub auth: AuthConfig,
+    /// Input bounds.
+    pub limits: Limits,
     /// Largest request body [bytes].
     pub body_limit: usize,
     pub coordinator: CoordinatorConfig,
@@ -42,7 +45,11 @@ pub fn default_web_dir() -> std::path::PathBuf {
 impl Default for ApiConfig {
     fn default() -> Self {
         Self {
-            admin_token: None,
+            auth: AuthConfig {
+                loopback: true,
+                ..AuthConfig::default()
+            },
+            limits: Limits::default(),
             body_limit: 16 << 20,
             coordinator: CoordinatorConfig::default(),
             web_dir: default_web_dir(),
@@ -57,6 +64,8 @@ pub(crate) struct LiveRun {
     pub(crate) config: FilterConfig,
     /// sha256(token) hex -> robot id.
     pub(crate) tokens: RwLock<HashMap<String, String>>,
+    /// sha256 hex of the run's enrollment token, with which robots may register themselves.
+    pub(crate) enrollment: Option<String>,
 }
 
 /// Shared state of the handlers.
@@ -66,6 +75,9 @@ pub struct AppState {
     pub config: Arc<ApiConfig>,
     pub(crate) runs: Arc<RwLock<HashMap<String, Arc<LiveRun>>>>,
     pub(crate) metrics: Arc<crate::metrics::Metrics>,
+    /// Held while a run is created, so that `max_active_runs` holds under concurrent
+    /// requests.
+    creating: Arc<tokio::sync::Mutex<()>>,
 }
 
 impl AppState {
@@ -75,6 +87,7 @@ impl AppState {
             config: Arc::new(config),
             runs: Arc::default(),
             metrics: Arc::default(),
+            creating: Arc::default(),
         }
     }
 
@@ -86,6 +99,7 @@ impl AppState {
         filter: fleetslam_localize::LateJoinSlam,
         recovered: Option<coordinator::Recovered>,
         tokens: HashMap<String, String>,
+        enrollment: Option<String>,
         training: Option<history::Training>,
     ) -> Arc<LiveRun> {
         let handle = coordinator::spawn(
@@ -100,6 +114,7 @@ impl AppState {
             handle,
             config,
             tokens: RwLock::new(tokens),
+            enrollment,
         });
         self.runs.write().await.insert(id, live.clone());
         live
@@ -156,10 +171,17 @@ pub fn app(state: AppState) -> Router {
         .route("/v1/models", get(api_history::list_models))
         .fallback_service(tower_http::services::ServeDir::new(&state.config.web_dir))
         .layer(DefaultBodyLimit::max(limit))
+        // Inside out: authorization (per route, so it sees the route pattern), metrics,
+        // every refusal as a JSON body, tracing.
+        .layer(axum::middleware::from_fn_with_state(
+            state.clone(),
+            crate::auth::authorize,
+        ))
         .layer(axum::middleware::from_fn_with_state(
             state.clone(),
             crate::metrics::track,
         ))
+        .layer(axum::middleware::from_fn(crate::error::json_errors))
         .layer(tower_http::trace::TraceLayer::new_for_http())
         .with_state(state)
 }
@@ -171,28 +193,20 @@ pub(crate) async fn healthz() -> &'static str {
     "ok"
 }
 
-pub(crate) fn token_hash(token: &str) -> String {
-    hex::encode(Sha256::digest(token.as_bytes()))
-}
+pub(crate) use crate::auth::token_hash;
 
-fn bearer(headers: &HeaderMap) -> Option<&str> {
-    headers
-        .get(header::AUTHORIZATION)?
-        .to_str()
-        .ok()?
-        .strip_prefix("Bearer ")
-        .map(str::trim)
-}
-
+/// 401 unless the request carries the admin token (when one is configured).
 pub(crate) fn check_admin(state: &AppState, headers: &HeaderMap) -> Result<(), ApiError> {
-    match &state.config.admin_token {
-        None => Ok(()),
-        Some(t) if bearer(headers) == Some(t.as_str()) => Ok(()),
-        Some(_) => Err(ApiError::Unauthorized(
-            "this action needs the admin token: send `Authorization: Bearer <admin token>`".into(),
-        )),
-    }
+    crate::auth::check_admin(&state.config.auth, headers)
 }
+
+/// A new random token (192 bits, hex).
+fn new_token() -> String {
+    hex::encode(rand::random::<[u8; 24]>())
+}
+
+/// The artifact that holds a run's enrollment token hash (never served).
+pub(crate) const ENROLLMENT: &str = "enrollment";
 
 /// Parses JSON into `T`, turning serde's message into a 400 that names the field.
 pub(crate) fn parse_json<T: serde::de::DeserializeOwned>(
@@ -236,6 +250,9 @@ pub struct RunCreated {
     pub id: String,
     #[schema(value_type = Object)]
     pub config: FilterConfig,
+    /// With it (`Authorization: Bearer <token>`) robots may register themselves in this run
+    /// and nothing else. Shown once; stored only as a hash.
+    pub enrollment_token: String,
 }
 
 /// `POST /v1/runs` (admin): a new run from a log header and configuration fields.
@@ -250,6 +267,21 @@ pub(crate) async fn create_run(
 ) -> Result<(StatusCode, Json<RunCreated>), ApiError> {
     check_admin(&state, &headers)?;
     let req: CreateRun = parse_json("run", &body)?;
+    let limits = &state.config.limits;
+    if let Some(name) = &req.name {
+        limits
+            .check_name("name", name)
+            .map_err(ApiError::BadRequest)?;
+    }
+    if let Some(h) = &req.header
+        && h.robots.len() > limits.max_robots_per_run
+    {
+        return Err(ApiError::BadRequest(format!(
+            "header.robots: {} robots, at most {} per run (max_robots_per_run)",
+            h.robots.len(),
+            limits.max_robots_per_run
+        )));
+    }
     let base = req
         .header
         .as_ref()
@@ -273,7 +305,21 @@ pub(crate) async fn create_run(
     let updater = history::updater_for(&state.store, &config).await?;
     let (updater, training) = history::recording(updater, training)?;
     let filter = history::new_filter(&config, localize, updater)?;
+    // Counted and inserted under one lock, so that concurrent requests cannot pass the bound.
+    let _creating = state.creating.lock().await;
+    let active = state.runs.read().await.len();
+    if active >= limits.max_active_runs {
+        return Err(ApiError::Busy {
+            message: format!(
+                "{active} runs are running, the most this server takes (max_active_runs); end \
+                 one or retry later"
+            ),
+            retry_after_s: 60,
+        });
+    }
     let id = uuid::Uuid::new_v4().to_string();
+    let enrollment_token = new_token();
+    let enrollment = token_hash(&enrollment_token);
     state
         .store
         .create_run(&NewRun {
@@ -289,17 +335,33 @@ pub(crate) async fn create_run(
         })
         .await?;
     state
+        .store
+        .put_artifact(
+            &id,
+            ENROLLMENT,
+            &serde_json::json!({ "token_sha256": enrollment }).to_string(),
+        )
+        .await?;
+    state
         .insert_live(
             id.clone(),
             config.clone(),
             filter,
             None,
             HashMap::new(),
+            Some(enrollment),
             training,
         )
         .await;
     tracing::info!(run = %id, "run created");
-    Ok((StatusCode::CREATED, Json(RunCreated { id, config })))
+    Ok((
+        StatusCode::CREATED,
+        Json(RunCreated {
+            id,
+            config,
+            enrollment_token,
+        }),
+    ))
 }
 
 #[derive(Debug, Deserialize)]
@@ -429,7 +491,8 @@ pub struct RegisterRobot {
     /// once its pose has converged.
     #[schema(value_type = Option<Object>)]
     pub start: Option<PoseGaussian>,
-    /// Time of the start pose [s]; default 0.
+    /// Time of the start pose [s]. When given, it also bounds the times of the run's first
+    /// records (`max_future_s`); default: the filter takes 0.
     pub t0: Option<f64>,
 }
 
@@ -442,50 +505,84 @@ pub struct RobotRegistered {
     pub mode: &'static str,
 }
 
-/// `POST /v1/runs/{run}/robots`: registers a robot; the answer holds its token.
+/// `POST /v1/runs/{run}/robots`: registers a robot; the answer holds its token. Needs the
+/// admin token or the run's enrollment token when the server has an admin token. Everything
+/// is checked before anything is stored: a refused registration leaves no trace.
 #[utoipa::path(post, path = "/v1/runs/{run}/robots", tag = "robots", request_body = RegisterRobot,
     params(("run" = String, Path, description = "Run id")),
-    responses((status = 201, body = RobotRegistered), (status = 409, body = crate::error::ErrorBody)))]
+    responses((status = 201, body = RobotRegistered),
+              (status = 400, description = "A bad id, start pose or t0: the message names the field", body = crate::error::ErrorBody),
+              (status = 401, description = "Neither the admin token nor the run's enrollment token", body = crate::error::ErrorBody),
+              (status = 409, description = "The id is taken, or the run takes no more robots", body = crate::error::ErrorBody)))]
 pub(crate) async fn register_robot(
     State(state): State<AppState>,
     Path(run): Path<String>,
+    headers: HeaderMap,
     body: Bytes,
 ) -> Result<(StatusCode, Json<RobotRegistered>), ApiError> {
-    let req: RegisterRobot = parse_json("robot", &body)?;
-    if req.id.is_empty() || req.id.len() > 64 || req.id.chars().any(|c| c.is_control() || c == '/')
-    {
-        return Err(ApiError::BadRequest(format!(
-            "robot id must be 1-64 printable characters without '/', got {:?}",
-            req.id
-        )));
+    let live = state.live(&run).await?;
+    let auth = &state.config.auth;
+    if auth.admin_token.is_some() {
+        let given = crate::auth::bearer(&headers);
+        let admin = crate::auth::is_admin(auth, &headers);
+        let enrolled = match (given, &live.enrollment) {
+            (Some(g), Some(hash)) => crate::auth::hash_matches(g, hash),
+            _ => false,
+        };
+        if !(admin | enrolled) {
+            return Err(ApiError::Unauthorized(
+                "registering a robot needs the admin token or the run's enrollment token \
+                 (`enrollment_token` from POST /v1/runs): send `Authorization: Bearer <token>`"
+                    .into(),
+            ));
+        }
     }
-    let t0 = req.t0.unwrap_or(0.0);
-    if !t0.is_finite() {
+    let req: RegisterRobot = parse_json("robot", &body)?;
+    let limits = &state.config.limits;
+    limits
+        .check_name("id", &req.id)
+        .map_err(ApiError::BadRequest)?;
+    if let Some(t0) = req.t0
+        && !t0.is_finite()
+    {
         return Err(ApiError::BadRequest(format!(
             "t0 must be a finite time in seconds, got {t0}"
         )));
     }
-    let live = state.live(&run).await?;
-    let token = hex::encode(rand::random::<[u8; 24]>());
+    if let Some(start) = &req.start {
+        crate::limits::check_start(start)
+            .map_err(|e| ApiError::BadRequest(format!("start: {e}")))?;
+    }
+    {
+        let tokens = live.tokens.read().await;
+        if tokens.values().any(|r| *r == req.id) {
+            return Err(ApiError::Conflict(format!(
+                "robot {:?} is already registered in this run",
+                req.id
+            )));
+        }
+        if tokens.len() >= limits.max_robots_per_run {
+            return Err(ApiError::Conflict(format!(
+                "run {run} has {} robots, the most a run takes (max_robots_per_run)",
+                tokens.len()
+            )));
+        }
+    }
+    let token = new_token();
     let hash = token_hash(&token);
-    state
-        .store
-        .add_robot(
-            &run,
-            &NewRobot {
-                robot_id: req.id.clone(),
-                start: req
-                    .start
-                    .as_ref()
-                    .map(serde_json::to_value)
-                    .transpose()
-                    .map_err(ApiError::internal)?,
-                token_hash: hash.clone(),
-                t0: Some(t0),
-            },
-        )
-        .await?;
-    live.handle.add_robot(req.id.clone(), req.start, t0).await?;
+    let row = NewRobot {
+        robot_id: req.id.clone(),
+        start: req
+            .start
+            .as_ref()
+            .map(serde_json::to_value)
+            .transpose()
+            .map_err(ApiError::internal)?,
+        token_hash: hash.clone(),
+        t0: req.t0,
+    };
+    // The coordinator checks the id again, stores the robot, then adds it to the filter.
+    live.handle.add_robot(row, req.start, req.t0).await?;
     live.tokens.write().await.insert(hash, req.id.clone());
     let mode = if req.start.is_some() {
         "mapping"
@@ -507,8 +604,20 @@ pub struct IngestResponse {
     pub acks: Vec<RecordAck>,
 }
 
-/// One record, an array of records, or NDJSON (one record per line).
-fn parse_records(headers: &HeaderMap, body: &[u8]) -> Result<Vec<Record>, ApiError> {
+/// One record, an array of records, or NDJSON (one record per line); at most `max`.
+fn parse_records(headers: &HeaderMap, body: &[u8], max: usize) -> Result<Vec<Record>, ApiError> {
+    let records = parse_records_unbounded(headers, body)?;
+    if records.len() > max {
+        return Err(ApiError::TooLarge(format!(
+            "{} records in one request, at most {max} (max_records_per_request): send them in \
+             several requests",
+            records.len()
+        )));
+    }
+    Ok(records)
+}
+
+fn parse_records_unbounded(headers: &HeaderMap, body: &[u8]) -> Result<Vec<Record>, ApiError> {
     let ndjson = headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
@@ -549,7 +658,7 @@ pub(crate) async fn post_observations(
     body: Bytes,
 ) -> Result<Response, ApiError> {
     let live = state.live(&run).await?;
-    let token = bearer(&headers).ok_or_else(|| {
+    let token = crate::auth::bearer(&headers).ok_or_else(|| {
         ApiError::Unauthorized(
             "send the robot's token as `Authorization: Bearer <token>` (from registration)".into(),
         )
@@ -561,18 +670,21 @@ pub(crate) async fn post_observations(
         .get(&token_hash(token))
         .cloned()
         .ok_or_else(|| ApiError::Unauthorized("unknown robot token for this run".into()))?;
-    let records = parse_records(&headers, &body)?;
+    let limits = &state.config.limits;
+    let records = parse_records(&headers, &body, limits.max_records_per_request)?;
     if records.is_empty() {
         return Err(ApiError::BadRequest("no records in the body".into()));
     }
     for (i, r) in records.iter().enumerate() {
         if r.robot != robot {
-            return Err(ApiError::Unauthorized(format!(
-                "record {i} is for robot {:?} but the token is robot {robot:?}'s",
-                r.robot
+            return Err(ApiError::Forbidden(format!(
+                "record {i} is for robot {:?} but the token is robot {robot:?}'s: a robot \
+                 posts only its own records",
+                crate::limits::truncate(&r.robot, 80)
             )));
         }
         r.validate(live.config.landmark_kind, live.config.motion_model)
+            .and_then(|()| limits.check_record(r))
             .map_err(|e| ApiError::BadRequest(format!("record {i} (seq {}): {e}", r.seq)))?;
     }
     let acks = live.handle.ingest(records).await?;

@@ -3,7 +3,9 @@
 //! `fleetslam.example.toml` at the repository root is a commented example.
 
 use crate::app::ApiConfig;
+use crate::auth::{AuthConfig, MIN_TOKEN_LEN, ReadAccess};
 use crate::coordinator::CoordinatorConfig;
+use crate::limits::Limits;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::time::Duration;
@@ -17,9 +19,23 @@ pub struct ServerConfig {
     pub data_dir: PathBuf,
     /// A `postgres://` (or `sqlite://`) URL; when set it replaces the embedded store.
     pub database_url: Option<String>,
-    /// Token required to create and end runs (`Authorization: Bearer ...`). Default none:
-    /// anyone who can reach the server may create runs, fine on loopback only.
+    /// Token required to create, end, delete and re-run runs, upload truth, and register
+    /// robots in any run (`Authorization: Bearer ...`; at least 16 characters). Default none:
+    /// anyone who can reach the server may do so, which `serve` allows on a loopback address
+    /// only.
     pub admin_token: Option<String>,
+    /// Token that grants reading (state, live, runs, trajectories, truth, evaluation,
+    /// export, models, metrics) when reads need one; the admin token always does. At least
+    /// 16 characters.
+    pub read_token: Option<String>,
+    /// Who may read: `auto` (default: anyone on a loopback address, the read or admin token
+    /// elsewhere), `token` (always a token) or `open` (anyone; only behind a proxy that
+    /// authenticates).
+    pub read_access: ReadAccess,
+    /// Origins (`scheme://host:port`) whose web pages may change state or open the live
+    /// websocket, besides the server's own loopback origins. Requests without an `Origin`
+    /// header (robots, scripts) are not affected.
+    pub allowed_origins: Vec<String>,
     /// Largest request body [bytes]. Default 16 MiB.
     pub body_limit_bytes: usize,
     /// Requests queued per run before the server answers 503 + Retry-After. Default 256.
@@ -38,6 +54,25 @@ pub struct ServerConfig {
     /// Directory of the dashboard's files, served at `/`. Default: the `web/` directory of
     /// the source tree the server was built from.
     pub web_dir: Option<PathBuf>,
+    /// How far a record's time may lie ahead of the run's clock (the time it has applied,
+    /// or before that its robots' start times and earliest record) [s]. Default 3600.
+    pub max_future_s: f64,
+    /// Longest motion (sum of segment durations) in one record [s]. Default 600.
+    pub max_motion_s: f64,
+    /// Most motion segments in one record. Default 10000.
+    pub max_motion_segments: usize,
+    /// Most records in one request. Default 10000.
+    pub max_records_per_request: usize,
+    /// Most landmark observations in one record. Default 1000.
+    pub max_landmarks_per_record: usize,
+    /// Most robot sightings in one record. Default 64.
+    pub max_sightings_per_record: usize,
+    /// Most robots in one run. Default 256.
+    pub max_robots_per_run: usize,
+    /// Most runs running at once in this server. Default 64.
+    pub max_active_runs: usize,
+    /// Longest run name, robot id or model id [bytes]. Default 128.
+    pub max_name_bytes: usize,
 }
 
 impl Default for ServerConfig {
@@ -47,6 +82,9 @@ impl Default for ServerConfig {
             data_dir: PathBuf::from("data"),
             database_url: None,
             admin_token: None,
+            read_token: None,
+            read_access: ReadAccess::Auto,
+            allowed_origins: Vec::new(),
             body_limit_bytes: 16 << 20,
             queue_capacity: 256,
             reorder_window_ms: 2000,
@@ -54,16 +92,28 @@ impl Default for ServerConfig {
             particle_sample: 100,
             snapshot_every: 2000,
             web_dir: None,
+            max_future_s: Limits::default().max_future_s,
+            max_motion_s: Limits::default().max_motion_s,
+            max_motion_segments: Limits::default().max_motion_segments,
+            max_records_per_request: Limits::default().max_records_per_request,
+            max_landmarks_per_record: Limits::default().max_landmarks_per_record,
+            max_sightings_per_record: Limits::default().max_sightings_per_record,
+            max_robots_per_run: Limits::default().max_robots_per_run,
+            max_active_runs: Limits::default().max_active_runs,
+            max_name_bytes: Limits::default().max_name_bytes,
         }
     }
 }
 
 /// The environment variables read, each overriding the field of the same name.
-pub const ENV_KEYS: [&str; 11] = [
+pub const ENV_KEYS: [&str; 23] = [
     "bind",
     "data_dir",
     "database_url",
     "admin_token",
+    "read_token",
+    "read_access",
+    "allowed_origins",
     "body_limit_bytes",
     "queue_capacity",
     "reorder_window_ms",
@@ -71,6 +121,15 @@ pub const ENV_KEYS: [&str; 11] = [
     "particle_sample",
     "snapshot_every",
     "web_dir",
+    "max_future_s",
+    "max_motion_s",
+    "max_motion_segments",
+    "max_records_per_request",
+    "max_landmarks_per_record",
+    "max_sightings_per_record",
+    "max_robots_per_run",
+    "max_active_runs",
+    "max_name_bytes",
 ];
 
 impl ServerConfig {
@@ -98,12 +157,25 @@ impl ServerConfig {
             let name = format!("FLEETSLAM_{}", key.to_uppercase());
             // An empty variable is unset (compose files pass `${VAR:-}` through).
             if let Some(raw) = env(&name).filter(|v| !v.is_empty()) {
-                let default_is_string = matches!(
+                let is_string = matches!(
                     key,
-                    "bind" | "data_dir" | "database_url" | "admin_token" | "web_dir"
+                    "bind"
+                        | "data_dir"
+                        | "database_url"
+                        | "admin_token"
+                        | "read_token"
+                        | "read_access"
+                        | "web_dir"
                 );
-                v[key] = if default_is_string {
+                v[key] = if is_string {
                     serde_json::Value::String(raw)
+                } else if key == "allowed_origins" {
+                    // A comma-separated list.
+                    raw.split(',')
+                        .map(str::trim)
+                        .filter(|o| !o.is_empty())
+                        .map(|o| serde_json::Value::String(o.to_string()))
+                        .collect()
                 } else {
                     serde_json::from_str(&raw)
                         .map_err(|_| format!("{name}={raw:?} is not a number"))?
@@ -133,12 +205,64 @@ impl ServerConfig {
                 self.body_limit_bytes
             ));
         }
+        for (name, token) in [
+            ("admin_token", &self.admin_token),
+            ("read_token", &self.read_token),
+        ] {
+            if let Some(t) = token
+                && t.chars().count() < MIN_TOKEN_LEN
+            {
+                return Err(format!(
+                    "{name} must be at least {MIN_TOKEN_LEN} characters (generate one with \
+                     `openssl rand -hex 24`)"
+                ));
+            }
+        }
+        for o in &self.allowed_origins {
+            crate::auth::parse_origin(o).map_err(|e| format!("allowed_origins: {e}"))?;
+        }
+        self.limits().validate()?;
         Ok(())
+    }
+
+    /// Refuses to serve a non-loopback address without an admin token: anyone on the network
+    /// could otherwise create runs and register robots. `addr` is the address bound.
+    pub fn check_exposure(&self, addr: &std::net::SocketAddr) -> Result<(), String> {
+        if !addr.ip().is_loopback() && self.admin_token.is_none() {
+            return Err(format!(
+                "refusing to serve {addr} without an admin token: set admin_token \
+                 (FLEETSLAM_ADMIN_TOKEN or --admin-token, at least {MIN_TOKEN_LEN} characters), \
+                 or bind a loopback address such as 127.0.0.1:8080"
+            ));
+        }
+        Ok(())
+    }
+
+    /// The input bounds.
+    pub fn limits(&self) -> Limits {
+        Limits {
+            max_future_s: self.max_future_s,
+            max_motion_s: self.max_motion_s,
+            max_motion_segments: self.max_motion_segments,
+            max_records_per_request: self.max_records_per_request,
+            max_landmarks_per_record: self.max_landmarks_per_record,
+            max_sightings_per_record: self.max_sightings_per_record,
+            max_robots_per_run: self.max_robots_per_run,
+            max_active_runs: self.max_active_runs,
+            max_name_bytes: self.max_name_bytes,
+        }
     }
 
     pub fn api(&self) -> ApiConfig {
         ApiConfig {
-            admin_token: self.admin_token.clone(),
+            auth: AuthConfig {
+                admin_token: self.admin_token.clone(),
+                read_token: self.read_token.clone(),
+                read_access: self.read_access,
+                allowed_origins: self.allowed_origins.clone(),
+                loopback: true,
+            },
+            limits: self.limits(),
             body_limit: self.body_limit_bytes,
             web_dir: self
                 .web_dir
@@ -150,6 +274,7 @@ impl ServerConfig {
                 state_rate_hz: self.state_rate_hz,
                 particle_sample: self.particle_sample,
                 snapshot_every: self.snapshot_every,
+                max_future_s: self.max_future_s,
             },
         }
     }

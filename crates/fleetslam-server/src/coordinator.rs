@@ -16,7 +16,7 @@ use fleetslam_core::filter::StepReport;
 use fleetslam_core::log::Record;
 use fleetslam_core::pose::{Pose2, PoseGaussian};
 use fleetslam_localize::LateJoinSlam;
-use fleetslam_store::{NewObservation, NewSnapshot, Store};
+use fleetslam_store::{NewObservation, NewRobot, NewSnapshot, Store};
 use serde::Serialize;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::Arc;
@@ -37,6 +37,9 @@ pub struct CoordinatorConfig {
     /// Records applied between two stored snapshots (recovery replays at most this many;
     /// scrubbing through a finished run replays at most this many per position).
     pub snapshot_every: u64,
+    /// How far a record's time may lie ahead of the run's clock [s] (see
+    /// [`Coordinator::clock`]).
+    pub max_future_s: f64,
 }
 
 impl Default for CoordinatorConfig {
@@ -47,6 +50,7 @@ impl Default for CoordinatorConfig {
             state_rate_hz: 10.0,
             particle_sample: 100,
             snapshot_every: 2000,
+            max_future_s: crate::limits::Limits::default().max_future_s,
         }
     }
 }
@@ -61,6 +65,10 @@ pub struct RecordAck {
     /// Arrival number in the run's stored log (stored and duplicate records).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub arrival: Option<i64>,
+    /// Why a record was rejected, for programs: `too_old`, `time_regression`,
+    /// `out_of_order`, `too_far_ahead`, `seq_conflict`, `unknown_robot`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub code: Option<&'static str>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error: Option<String>,
 }
@@ -86,6 +94,9 @@ pub struct RobotStatus {
     pub records: u64,
     /// Missing sequence numbers below `last_seq` (gaps are accepted and reported).
     pub gaps: u64,
+    /// Records refused because their seq was stored before with other content (a robot
+    /// that restarted its numbering, or two robots sharing a token).
+    pub seq_conflicts: u64,
     /// Its records buffered in the merge, waiting for the other robots.
     pub queue_depth: usize,
     /// How far (in data time) the filter is behind this robot's latest record [s].
@@ -147,9 +158,9 @@ pub enum Command {
         reply: oneshot::Sender<Result<Vec<RecordAck>, ApiError>>,
     },
     AddRobot {
-        robot: String,
+        row: NewRobot,
         start: Option<PoseGaussian>,
-        t0: f64,
+        t0: Option<f64>,
         reply: oneshot::Sender<Result<(), ApiError>>,
     },
     End {
@@ -157,6 +168,10 @@ pub enum Command {
     },
     Trajectories {
         reply: oneshot::Sender<Result<Arc<Trajectories>, ApiError>>,
+    },
+    /// Store a snapshot now (on shutdown) and answer once it is stored.
+    Checkpoint {
+        reply: oneshot::Sender<Result<(), ApiError>>,
     },
 }
 
@@ -195,14 +210,16 @@ impl RunHandle {
         self.call(|reply| Command::Ingest { records, reply }).await
     }
 
+    /// Registers a robot: the coordinator checks its id is free, stores `row`, and adds it
+    /// to the filter (a start pose checked by [`crate::limits::check_start`]).
     pub async fn add_robot(
         &self,
-        robot: String,
+        row: NewRobot,
         start: Option<PoseGaussian>,
-        t0: f64,
+        t0: Option<f64>,
     ) -> Result<(), ApiError> {
         self.call(|reply| Command::AddRobot {
-            robot,
+            row,
             start,
             t0,
             reply,
@@ -212,6 +229,18 @@ impl RunHandle {
 
     pub async fn end(&self) -> Result<(), ApiError> {
         self.call(|reply| Command::End { reply }).await
+    }
+
+    /// Stores a snapshot of the run as it is now.
+    pub async fn checkpoint(&self) -> Result<(), ApiError> {
+        let (reply, rx) = oneshot::channel();
+        // Waits for room: on shutdown nothing else is sent.
+        self.tx
+            .send(Command::Checkpoint { reply })
+            .await
+            .map_err(|_| ApiError::Conflict(format!("run {} has ended", self.id)))?;
+        rx.await
+            .map_err(|_| ApiError::Conflict(format!("run {} has ended", self.id)))?
     }
 
     pub async fn trajectories(&self) -> Result<Arc<Trajectories>, ApiError> {
@@ -233,6 +262,8 @@ struct Acked {
     max: Option<u64>,
     last_t: Option<f64>,
     records: u64,
+    /// Repeats of a stored seq with other content.
+    seq_conflicts: u64,
 }
 
 impl Acked {
@@ -303,6 +334,8 @@ pub fn spawn(
         store,
         merger: Merger::new(cfg.reorder_window),
         acked: HashMap::new(),
+        start_t: None,
+        first_t: None,
         applied: 0,
         last_snapshot: 0,
         trajectories: Arc::new(Trajectories::new()),
@@ -326,6 +359,9 @@ pub fn spawn(
         for (robot, t0, seqs) in &r.robots {
             task.merger.restore_robot(robot, *t0, seqs, now);
             task.acked.insert(robot.clone(), Acked::restore(seqs));
+            if let Some(t) = seqs.values().copied().reduce(f64::min) {
+                task.first_t = Some(task.first_t.map_or(t, |f| f.min(t)));
+            }
         }
         for rec in r.pending {
             task.merger.restore_pending(rec);
@@ -394,6 +430,10 @@ struct Coordinator {
     store: Store,
     merger: Merger,
     acked: HashMap<String, Acked>,
+    /// The latest start time given at a registration (`t0`).
+    start_t: Option<f64>,
+    /// The earliest time of a record stored in the run.
+    first_t: Option<f64>,
     applied: u64,
     /// `applied` at the last snapshot.
     last_snapshot: u64,
@@ -443,17 +483,18 @@ impl Coordinator {
                 }
             }
             let mut ingests = Vec::new();
+            let mut checkpoints = Vec::new();
             let mut ended = false;
             for c in cmds {
                 match c {
                     Command::Ingest { records, reply } => ingests.push((records, reply)),
                     Command::AddRobot {
-                        robot,
+                        row,
                         start,
                         t0,
                         reply,
                     } => {
-                        let r = self.add_robot(robot, start, t0).await;
+                        let r = self.add_robot(row, start, t0).await;
                         let _ = reply.send(r);
                     }
                     Command::End { reply } => {
@@ -463,6 +504,7 @@ impl Coordinator {
                     Command::Trajectories { reply } => {
                         let _ = reply.send(Ok(self.trajectories.clone()));
                     }
+                    Command::Checkpoint { reply } => checkpoints.push(reply),
                 }
             }
             if !ingests.is_empty() {
@@ -485,6 +527,12 @@ impl Coordinator {
             }
             if self.applied >= self.last_snapshot + self.cfg.snapshot_every.max(1) {
                 self.snapshot(None);
+            }
+            for reply in checkpoints {
+                let (tx, rx) = oneshot::channel();
+                self.snapshot(Some(tx));
+                let stored = rx.await.map_err(ApiError::internal).and_then(|r| r);
+                let _ = reply.send(stored);
             }
             self.publish(false);
         }
@@ -581,33 +629,41 @@ impl Coordinator {
 
     async fn add_robot(
         &mut self,
-        robot: String,
+        row: NewRobot,
         start: Option<PoseGaussian>,
-        t0: f64,
+        t0: Option<f64>,
     ) -> Result<(), ApiError> {
+        let robot = row.robot_id.clone();
         if self.acked.contains_key(&robot) {
             return Err(ApiError::Conflict(format!(
                 "robot {robot:?} is already registered in this run"
             )));
         }
+        // The handler checked the id, t0 and start pose as the filter does, so the filter
+        // cannot refuse the robot once it is stored.
+        self.store.add_robot(&self.id, &row).await?;
+        if let Some(t) = t0 {
+            self.start_t = Some(self.start_t.map_or(t, |s| s.max(t)));
+        }
+        let t0 = t0.unwrap_or(0.0);
         let filter = self
             .filter
             .as_mut()
             .expect("the filter is home between steps");
-        match &start {
-            Some(s) => {
-                let i = filter
-                    .add_robot(&robot, s, t0)
-                    .map_err(|e| ApiError::BadRequest(e.to_string()))?;
+        let added = match &start {
+            Some(s) => filter.add_robot(&robot, s, t0).map(|i| {
                 Arc::make_mut(&mut self.trajectories).insert(
                     robot.clone(),
                     vec![history::trajectory_point(filter.slam(), i, t0)],
                 );
-            }
+            }),
             // Localized against the run's map first, then inserted into every particle.
-            None => filter
-                .add_unknown_robot(&robot)
-                .map_err(|e| ApiError::BadRequest(e.to_string()))?,
+            None => filter.add_unknown_robot(&robot),
+        };
+        if let Err(e) = added {
+            return Err(ApiError::internal(anyhow::anyhow!(
+                "robot {robot:?} was stored but the filter refused it: {e}"
+            )));
         }
         let mode = filter.phase(&robot).map_or("mapping", |p| p.as_str());
         // Every robot's records go through the merge, in the one deterministic order.
@@ -626,43 +682,104 @@ impl Coordinator {
         Ok(())
     }
 
+    /// The run's clock, against which `max_future_s` bounds a record's time: the time of the
+    /// last applied record; before any, the latest start time given at a registration; before
+    /// that, the earliest stored record's time; before any record, `fallback`.
+    fn clock(&self, fallback: Option<f64>) -> Option<f64> {
+        self.merger
+            .applied_t()
+            .or(self.start_t)
+            .or(self.first_t)
+            .or(fallback)
+    }
+
     /// Checks, stores (one append for all requests) and acknowledges records.
     async fn ingest(&mut self, ingests: Vec<PendingIngest>) {
-        // Per request, per record: an ack, or an index into the batch to store.
-        let mut plans: Vec<Vec<Result<RecordAck, usize>>> = Vec::with_capacity(ingests.len());
+        /// What becomes of one record.
+        enum Plan {
+            Ack(RecordAck),
+            /// Index into the batch to store.
+            Store(usize),
+            /// Index into `repeats`: a seq stored before, to compare with.
+            Repeat(usize),
+        }
+        let mut plans: Vec<Vec<Plan>> = Vec::with_capacity(ingests.len());
         let mut batch: Vec<(Record, String)> = Vec::new();
-        let mut in_batch: BTreeSet<(String, u64)> = BTreeSet::new();
+        let mut in_batch: HashMap<(String, u64), usize> = HashMap::new();
+        let mut repeats: Vec<(String, u64, String)> = Vec::new();
         // Times of the records accepted so far in this batch, per robot, by seq: a robot's
         // time must not go back as its seq goes up, within the batch as against the merge.
         let mut batch_times: HashMap<String, BTreeMap<u64, f64>> = HashMap::new();
+        let earliest = ingests
+            .iter()
+            .flat_map(|(rs, _)| rs.iter().map(|r| r.t))
+            .reduce(f64::min);
+        let clock = self.clock(earliest);
+        let max_future = self.cfg.max_future_s;
         for (records, _) in &ingests {
             let mut plan = Vec::with_capacity(records.len());
             for r in records {
-                let Some(acked) = self.acked.get(&r.robot) else {
-                    plan.push(Ok(reject(
+                let body = match serde_json::to_string(r) {
+                    Ok(b) => b,
+                    Err(e) => {
+                        plan.push(Plan::Ack(reject(
+                            r.seq,
+                            "invalid",
+                            format!("cannot encode: {e}"),
+                        )));
+                        continue;
+                    }
+                };
+                let Some(acked) = self.acked.get_mut(&r.robot) else {
+                    plan.push(Plan::Ack(reject(
                         r.seq,
+                        "unknown_robot",
                         format!("robot {:?} is not registered in this run", r.robot),
                     )));
                     continue;
                 };
-                if acked.contains(r.seq) || in_batch.contains(&(r.robot.clone(), r.seq)) {
-                    plan.push(Ok(RecordAck {
-                        seq: r.seq,
-                        status: "duplicate",
-                        arrival: None,
-                        error: None,
-                    }));
+                if let Some(&i) = in_batch.get(&(r.robot.clone(), r.seq)) {
+                    if batch[i].1 == body {
+                        plan.push(Plan::Store(i));
+                    } else {
+                        acked.seq_conflicts += 1;
+                        plan.push(Plan::Ack(seq_conflict(&r.robot, r.seq)));
+                    }
+                    continue;
+                }
+                if acked.contains(r.seq) {
+                    plan.push(Plan::Repeat(repeats.len()));
+                    repeats.push((r.robot.clone(), r.seq, body));
+                    continue;
+                }
+                if let Some(c) = clock
+                    && r.t > c + max_future
+                {
+                    plan.push(Plan::Ack(reject(
+                        r.seq,
+                        "too_far_ahead",
+                        format!(
+                            "t={} is {:.0} s ahead of the run's clock (t={c}); at most \
+                             max_future_s = {max_future} s ahead is accepted",
+                            r.t,
+                            r.t - c
+                        ),
+                    )));
                     continue;
                 }
                 if let Err(e) = self.merger.check(r) {
-                    let msg = match e {
-                        MergeError::TooOld { .. } => format!(
-                            "{e} (reorder window {} ms)",
-                            self.cfg.reorder_window.as_millis()
+                    let (code, msg) = match e {
+                        MergeError::TooOld { .. } => (
+                            "too_old",
+                            format!(
+                                "{e} (reorder window {} ms)",
+                                self.cfg.reorder_window.as_millis()
+                            ),
                         ),
-                        other => other.to_string(),
+                        MergeError::TimeRegression { .. } => ("time_regression", e.to_string()),
+                        MergeError::UnknownRobot(_) => ("unknown_robot", e.to_string()),
                     };
-                    plan.push(Ok(reject(r.seq, msg)));
+                    plan.push(Plan::Ack(reject(r.seq, code, msg)));
                     continue;
                 }
                 let times = batch_times.entry(r.robot.clone()).or_default();
@@ -672,8 +789,9 @@ impl Coordinator {
                     .filter(|(_, t)| r.t < *t)
                     .or(after.filter(|(_, t)| r.t > *t))
                 {
-                    plan.push(Ok(reject(
+                    plan.push(Plan::Ack(reject(
                         r.seq,
+                        "out_of_order",
                         format!(
                             "record {} of robot {:?} at t={} is out of time order with its record {s} at t={t}",
                             r.seq, r.robot, r.t
@@ -681,17 +799,42 @@ impl Coordinator {
                     )));
                     continue;
                 }
-                match serde_json::to_string(r) {
-                    Ok(body) => {
-                        times.insert(r.seq, r.t);
-                        in_batch.insert((r.robot.clone(), r.seq));
-                        plan.push(Err(batch.len()));
-                        batch.push((r.clone(), body));
-                    }
-                    Err(e) => plan.push(Ok(reject(r.seq, format!("cannot encode: {e}")))),
-                }
+                times.insert(r.seq, r.t);
+                in_batch.insert((r.robot.clone(), r.seq), batch.len());
+                plan.push(Plan::Store(batch.len()));
+                batch.push((r.clone(), body));
             }
             plans.push(plan);
+        }
+        // A repeated seq is a duplicate only if its content is what was stored.
+        let mut repeat_acks: Vec<RecordAck> = Vec::with_capacity(repeats.len());
+        for (robot, seq, body) in &repeats {
+            let stored = match self.store.record_body(&self.id, robot, *seq as i64).await {
+                Ok(b) => b,
+                Err(e) => {
+                    let e = Arc::new(e);
+                    for (_, reply) in ingests {
+                        let _ = reply.send(Err(ApiError::internal(anyhow::anyhow!(
+                            "reading a stored record: {e}"
+                        ))));
+                    }
+                    return;
+                }
+            };
+            repeat_acks.push(if stored.as_deref() == Some(body.as_str()) {
+                RecordAck {
+                    seq: *seq,
+                    status: "duplicate",
+                    arrival: None,
+                    code: None,
+                    error: None,
+                }
+            } else {
+                if let Some(a) = self.acked.get_mut(robot) {
+                    a.seq_conflicts += 1;
+                }
+                seq_conflict(robot, *seq)
+            });
         }
         let stored = if batch.is_empty() {
             Ok(Vec::new())
@@ -725,25 +868,30 @@ impl Coordinator {
             let acked = self.acked.get_mut(&rec.robot).expect("checked above");
             if !item.duplicate {
                 acked.insert(rec.seq, rec.t);
+                self.first_t = Some(self.first_t.map_or(rec.t, |f| f.min(rec.t)));
                 // Checked above; the only failure left would be a bug.
                 if let Err(e) = self.merger.push(rec.clone(), now) {
                     tracing::error!(run = %self.id, error = %e, "merge refused a checked record");
                 }
             }
         }
+        // A record posted twice in one batch is stored once; the second is a duplicate.
+        let mut answered: BTreeSet<usize> = BTreeSet::new();
         for ((_, reply), plan) in ingests.into_iter().zip(plans) {
             let acks = plan
                 .into_iter()
                 .map(|p| match p {
-                    Ok(a) => a,
-                    Err(i) => RecordAck {
+                    Plan::Ack(a) => a,
+                    Plan::Repeat(i) => repeat_acks[i].clone(),
+                    Plan::Store(i) => RecordAck {
                         seq: batch[i].0.seq,
-                        status: if stored[i].duplicate {
+                        status: if stored[i].duplicate || !answered.insert(i) {
                             "duplicate"
                         } else {
                             "stored"
                         },
                         arrival: Some(stored[i].arrival),
+                        code: None,
                         error: None,
                     },
                 })
@@ -882,6 +1030,7 @@ impl Coordinator {
                 r.last_t = a.last_t;
                 r.records = a.records;
                 r.gaps = a.gaps();
+                r.seq_conflicts = a.seq_conflicts;
                 r.queue_depth = self.merger.pending_of(&r.id);
                 r.lag_s = match (a.last_t, applied_t) {
                     (Some(l), Some(t)) => (l - t).max(0.0),
@@ -898,11 +1047,24 @@ impl Coordinator {
     }
 }
 
-fn reject(seq: u64, error: String) -> RecordAck {
+fn reject(seq: u64, code: &'static str, error: String) -> RecordAck {
     RecordAck {
         seq,
         status: "rejected",
         arrival: None,
+        code: Some(code),
         error: Some(error),
     }
+}
+
+fn seq_conflict(robot: &str, seq: u64) -> RecordAck {
+    reject(
+        seq,
+        "seq_conflict",
+        format!(
+            "seq {seq} of robot {robot:?} was stored before with other content; a robot that \
+             restarts must go on from its last seq (see last_seq in the run's state), not \
+             number its records from 0 again"
+        ),
+    )
 }

@@ -450,6 +450,7 @@ pub fn base_state(
                 last_t: e.map(|e| e.last_t),
                 records: e.map_or(0, |e| e.records),
                 gaps: 0,
+                seq_conflicts: 0,
                 queue_depth: 0,
                 lag_s: 0.0,
             }

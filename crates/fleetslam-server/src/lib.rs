@@ -11,10 +11,12 @@
 
 pub mod api_history;
 pub mod app;
+pub mod auth;
 pub mod config;
 pub mod coordinator;
 pub mod error;
 pub mod history;
+pub mod limits;
 pub mod merge;
 pub mod metrics;
 pub mod openapi;

@@ -114,6 +114,12 @@ async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> 
         .iter()
         .map(|r| (r.token_hash.clone(), r.robot_id.clone()))
         .collect();
+    let enrollment = match store.get_artifact(&row.id, crate::app::ENROLLMENT).await? {
+        Some(body) => serde_json::from_str::<serde_json::Value>(&body)
+            .ok()
+            .and_then(|v| v["token_sha256"].as_str().map(str::to_string)),
+        None => None,
+    };
     state
         .insert_live(
             row.id.clone(),
@@ -127,6 +133,7 @@ async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> 
                 pending,
             }),
             tokens,
+            enrollment,
             training,
         )
         .await;

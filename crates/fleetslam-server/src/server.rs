@@ -12,17 +12,26 @@ use tokio::sync::oneshot;
 pub struct Running {
     pub addr: SocketAddr,
     pub store: Store,
+    state: AppState,
     shutdown: Option<oneshot::Sender<()>>,
     task: tokio::task::JoinHandle<std::io::Result<()>>,
 }
 
 impl Running {
-    /// Stops accepting connections, finishes the requests under way and returns.
+    /// Stops accepting connections, finishes the requests under way (so that everything
+    /// acknowledged is answered), then stores a snapshot of every running run, so that the
+    /// next start resumes them without replaying their records. Runs stay active.
     pub async fn stop(mut self) -> anyhow::Result<()> {
         if let Some(tx) = self.shutdown.take() {
             let _ = tx.send(());
         }
         self.task.await.context("server task")??;
+        let runs: Vec<_> = self.state.runs.read().await.values().cloned().collect();
+        for live in runs {
+            if let Err(e) = live.handle.checkpoint().await {
+                tracing::warn!(run = %live.handle.id, error = %e, "no final snapshot");
+            }
+        }
         Ok(())
     }
 
@@ -44,19 +53,23 @@ pub async fn start(cfg: &ServerConfig) -> anyhow::Result<Running> {
             .await
             .with_context(|| format!("opening the store in {}", cfg.data_dir.display()))?,
     };
-    let state = AppState::new(store.clone(), cfg.api());
+    let listener = tokio::net::TcpListener::bind(&cfg.bind)
+        .await
+        .with_context(|| format!("listening on {}", cfg.bind))?;
+    let addr = listener.local_addr()?;
+    cfg.check_exposure(&addr).map_err(anyhow::Error::msg)?;
+    let mut api = cfg.api();
+    api.auth.loopback = addr.ip().is_loopback();
+    let state = AppState::new(store.clone(), api);
+    // Connections wait in the listener's backlog until the runs are back.
     let recovered = crate::recovery::recover(&state)
         .await
         .map_err(|e| anyhow::anyhow!("recovering runs: {e}"))?;
     if recovered > 0 {
         tracing::info!(runs = recovered, "recovered active runs");
     }
-    let listener = tokio::net::TcpListener::bind(&cfg.bind)
-        .await
-        .with_context(|| format!("listening on {}", cfg.bind))?;
-    let addr = listener.local_addr()?;
     let (tx, rx) = oneshot::channel::<()>();
-    let router = app(state);
+    let router = app(state.clone());
     let task = tokio::spawn(async move {
         axum::serve(listener, router)
             .with_graceful_shutdown(async {
@@ -68,7 +81,25 @@ pub async fn start(cfg: &ServerConfig) -> anyhow::Result<Running> {
     Ok(Running {
         addr,
         store,
+        state,
         shutdown: Some(tx),
         task,
     })
+}
+
+/// Resolves on SIGINT (Ctrl-C) or SIGTERM (what `docker stop` and systemd send).
+pub async fn shutdown_signal() -> std::io::Result<&'static str> {
+    #[cfg(unix)]
+    {
+        let mut term =
+            tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
+        tokio::select! {
+            r = tokio::signal::ctrl_c() => r.map(|()| "SIGINT"),
+            _ = term.recv() => Ok("SIGTERM"),
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        tokio::signal::ctrl_c().await.map(|()| "Ctrl-C")
+    }
 }

@@ -177,7 +177,11 @@ type Case<'a> = (
 async fn bad_input_table() {
     let log = sim_log(2, 3.0);
     let h = harness(ApiConfig {
-        admin_token: Some("sesame".into()),
+        auth: fleetslam_server::auth::AuthConfig {
+            admin_token: Some("sesame".into()),
+            loopback: true,
+            ..Default::default()
+        },
         body_limit: 64 << 10,
         ..ApiConfig::default()
     })
@@ -201,7 +205,7 @@ async fn bad_input_table() {
         .json(
             "POST",
             &format!("/v1/runs/{run}/robots"),
-            None,
+            Some("sesame"),
             json!({"id": "1", "start": log.header.robots[0].start, "t0": 0.0}),
         )
         .await;
@@ -243,7 +247,7 @@ async fn bad_input_table() {
         (
             "robot: duplicate",
             format!("/v1/runs/{run}/robots"),
-            None,
+            Some("sesame"),
             serde_json::to_vec(&json!({"id": "1"})).unwrap(),
             StatusCode::CONFLICT,
             "already",
@@ -251,15 +255,15 @@ async fn bad_input_table() {
         (
             "robot: bad id",
             format!("/v1/runs/{run}/robots"),
-            None,
+            Some("sesame"),
             serde_json::to_vec(&json!({"id": ""})).unwrap(),
             StatusCode::BAD_REQUEST,
-            "robot id",
+            "id must be",
         ),
         (
             "robot: unknown run",
             "/v1/runs/nope/robots".into(),
-            None,
+            Some("sesame"),
             serde_json::to_vec(&json!({"id": "x"})).unwrap(),
             StatusCode::NOT_FOUND,
             "no run",
@@ -363,7 +367,7 @@ async fn bad_input_table() {
             obs.clone(),
             Some(&token),
             with("robot", json!("2")),
-            StatusCode::UNAUTHORIZED,
+            StatusCode::FORBIDDEN,
             "token",
         ),
         (
@@ -380,7 +384,7 @@ async fn bad_input_table() {
             Some(&token),
             big,
             StatusCode::PAYLOAD_TOO_LARGE,
-            "",
+            "body_limit_bytes",
         ),
         (
             "state: unknown run",

@@ -598,6 +598,28 @@ impl Store {
             .collect())
     }
 
+    /// The stored body of record `seq` of `robot` in a run, if any: what a repeated seq is
+    /// compared with.
+    pub async fn record_body(
+        &self,
+        run_id: &str,
+        robot_id: &str,
+        seq: i64,
+    ) -> Result<Option<String>, StoreError> {
+        let sql = "SELECT body FROM observations WHERE run_id = $1 AND robot_id = $2 AND seq = $3";
+        let body = with_pool!(&self.inner.pool, pool => {
+            sqlx::query(sql)
+                .bind(run_id)
+                .bind(robot_id)
+                .bind(seq)
+                .fetch_optional(pool)
+                .await?
+                .map(|row| row.try_get::<String, _>("body"))
+                .transpose()?
+        });
+        Ok(body)
+    }
+
     /// The highest stored seq of each robot of a run that has records.
     pub async fn last_seqs(&self, run_id: &str) -> Result<BTreeMap<String, i64>, StoreError> {
         let sql = "SELECT robot_id, MAX(seq) AS seq FROM observations WHERE run_id = $1 GROUP BY robot_id";

@@ -66,6 +66,7 @@ pub struct AppState {
     pub config: Arc<ApiConfig>,
     pub(crate) runs: Arc<RwLock<HashMap<String, Arc<LiveRun>>>>,
     pub(crate) metrics: Arc<crate::metrics::Metrics>,
+    pub(crate) ws: Arc<crate::ws_limit::WsLimits>,
 }
 
 impl AppState {
@@ -75,6 +76,7 @@ impl AppState {
             config: Arc::new(config),
             runs: Arc::default(),
             metrics: Arc::default(),
+            ws: Arc::default(),
         }
     }
 
@@ -106,18 +108,11 @@ impl AppState {
     }
 
     pub(crate) async fn live(&self, id: &str) -> Result<Arc<LiveRun>, ApiError> {
-        if let Some(r) = self.runs.read().await.get(id) {
-            return Ok(r.clone());
+        if let Some(r) = self.running(id).await {
+            return Ok(r);
         }
         match self.store.get_run(id).await? {
-            Some(row) if row.status == "active" => Err(ApiError::Conflict(format!(
-                "run {id} is active in the store but not running in this server (its recovery \
-                 failed at start; see the server log)"
-            ))),
-            Some(row) => Err(ApiError::Conflict(format!(
-                "run {id} is {}: it takes no more data",
-                row.status
-            ))),
+            Some(row) => Err(api_history::not_running(&row)),
             None => Err(ApiError::NotFound(format!(
                 "no run {id}: list runs with GET /v1/runs"
             ))),
@@ -592,10 +587,14 @@ pub(crate) async fn live(
     State(state): State<AppState>,
     Path(run): Path<String>,
     ws: WebSocketUpgrade,
+    permit: crate::ws_limit::WsPermit,
 ) -> Result<Response, ApiError> {
     let live = state.live(&run).await?;
     let rate = state.config.coordinator.state_rate_hz;
-    Ok(ws.on_upgrade(move |socket| stream_run(socket, live.handle.clone(), rate)))
+    Ok(ws.on_upgrade(move |socket| async move {
+        let _slot = permit; // held for as long as the connection lives
+        stream_run(socket, live.handle.clone(), rate).await
+    }))
 }
 
 /// Streams `{"type":"state",...}` at most `rate` times a second (always the newest state: a

@@ -38,6 +38,12 @@ pub struct ServerConfig {
     /// Directory of the dashboard's files, served at `/`. Default: the `web/` directory of
     /// the source tree the server was built from.
     pub web_dir: Option<PathBuf>,
+    /// Websocket clients (`GET /v1/runs/{id}/live`) of one run at a time; one more gets a
+    /// JSON 503 before the upgrade. Default 32. Each costs a task and a state serialization
+    /// per publication.
+    pub ws_max_per_run: usize,
+    /// Websocket clients of all runs together; one more gets a JSON 503. Default 256.
+    pub ws_max_total: usize,
 }
 
 impl Default for ServerConfig {
@@ -54,12 +60,14 @@ impl Default for ServerConfig {
             particle_sample: 100,
             snapshot_every: 2000,
             web_dir: None,
+            ws_max_per_run: crate::ws_limit::DEFAULT_WS_MAX_PER_RUN,
+            ws_max_total: crate::ws_limit::DEFAULT_WS_MAX_TOTAL,
         }
     }
 }
 
 /// The environment variables read, each overriding the field of the same name.
-pub const ENV_KEYS: [&str; 11] = [
+pub const ENV_KEYS: [&str; 13] = [
     "bind",
     "data_dir",
     "database_url",
@@ -71,6 +79,8 @@ pub const ENV_KEYS: [&str; 11] = [
     "particle_sample",
     "snapshot_every",
     "web_dir",
+    "ws_max_per_run",
+    "ws_max_total",
 ];
 
 impl ServerConfig {
@@ -127,6 +137,9 @@ impl ServerConfig {
         if self.snapshot_every == 0 {
             return Err("snapshot_every must be at least 1".into());
         }
+        if self.ws_max_per_run == 0 || self.ws_max_total == 0 {
+            return Err("ws_max_per_run and ws_max_total must be at least 1".into());
+        }
         if self.body_limit_bytes < 1024 {
             return Err(format!(
                 "body_limit_bytes must be at least 1024, got {}",
@@ -150,6 +163,8 @@ impl ServerConfig {
                 state_rate_hz: self.state_rate_hz,
                 particle_sample: self.particle_sample,
                 snapshot_every: self.snapshot_every,
+                ws_max_per_run: self.ws_max_per_run,
+                ws_max_total: self.ws_max_total,
             },
         }
     }

@@ -497,7 +497,7 @@ pub async fn state_at(
     let from_t = last.as_ref().map_or(f64::NEG_INFINITY, OrderKey::t);
     let records = parse_records(&records_in_time(store, run, from_t, t).await?);
     let todo = records_after_snapshot(records, &filter, last.as_ref(), Some(t));
-    let (filter, applied, applied_t) = tokio::task::spawn_blocking(move || {
+    let (filter, applied, applied_t, trajectories) = tokio::task::spawn_blocking(move || {
         let base = filter.clone();
         let mut filter = filter;
         let mut since = Vec::new();
@@ -519,7 +519,7 @@ pub async fn state_at(
             applied_t = Some(r.t);
             since.push(r);
         }
-        Ok::<_, ApiError>((filter, applied, applied_t))
+        Ok::<_, ApiError>((filter, applied, applied_t, trajectories))
     })
     .await
     .map_err(ApiError::internal)??;

@@ -371,17 +371,23 @@ async fn export_header(store: &Store, row: &RunRow) -> Result<LogHeader, ApiErro
         .await?
         .into_iter()
         .map(|r| {
-            Ok(RobotStart {
+            // A start pose that cannot be read back (a run that failed for it) is exported
+            // as unknown rather than failing the export.
+            let start = r
+                .start
+                .map(serde_json::from_value::<PoseGaussian>)
+                .transpose()
+                .unwrap_or_else(|e| {
+                    tracing::warn!(run = %row.id, robot = %r.robot_id, error = %e, "unreadable start pose left out of the export");
+                    None
+                });
+            RobotStart {
                 id: r.robot_id,
-                start: r
-                    .start
-                    .map(serde_json::from_value::<PoseGaussian>)
-                    .transpose()
-                    .map_err(ApiError::internal)?,
+                start,
                 t0: r.t0,
-            })
+            }
         })
-        .collect::<Result<_, ApiError>>()?;
+        .collect();
     Ok(header)
 }
 

@@ -126,7 +126,10 @@ fn sigterm_stops_cleanly_with_final_snapshots() {
         if let Some(s) = server.0.try_wait().unwrap() {
             break s;
         }
-        assert!(std::time::Instant::now() < deadline, "no exit after SIGTERM");
+        assert!(
+            std::time::Instant::now() < deadline,
+            "no exit after SIGTERM"
+        );
         std::thread::sleep(std::time::Duration::from_millis(50));
     };
     assert!(status.success(), "exit status {status}");

@@ -166,12 +166,12 @@ fn main() {
             let (a0, _) = index[index.len() - 3];
             let (a1, t1) = index[index.len() - 2];
             let t = Instant::now();
-            let s = fleetslam_server::history::state_at(&store, &run, "active", t1.next_down(), 10)
+            let s = fleetslam_server::history::state_at(&store, &run, "active", t1.next_down(), 10, false)
                 .await
                 .unwrap();
             println!(
                 "replay from a snapshot: {} records in {:.0} ms (from snapshot {a0} to just before snapshot {a1})",
-                s.applied as i64 - a0,
+                s.state.applied as i64 - a0,
                 t.elapsed().as_secs_f64() * 1e3
             );
         }

@@ -65,6 +65,70 @@ async fn stored_result(store: &Store, run: &str) -> Result<Option<StoredResult>,
     }
 }
 
+impl AppState {
+    /// Starts the coordinator of run `id`, already created in the store (and not running),
+    /// with a filter its caller built (any updater): for embedders and tests. Its robots are
+    /// registered through the API as usual.
+    pub async fn start_run(
+        &self,
+        id: &str,
+        filter: fleetslam_localize::LateJoinSlam,
+    ) -> Result<crate::coordinator::RunHandle, ApiError> {
+        let row = run_row(&self.store, id).await?;
+        if self.running(id).await.is_some() {
+            return Err(ApiError::Conflict(format!("run {id} is already running")));
+        }
+        if row.status != fleetslam_store::STATUS_ACTIVE {
+            return Err(not_running(&row));
+        }
+        let config: FilterConfig = serde_json::from_value(row.config)
+            .map_err(|e| ApiError::internal(anyhow::anyhow!("run {id}'s config: {e}")))?;
+        let live = self
+            .insert_live(
+                id.to_string(),
+                config,
+                filter,
+                None,
+                HashMap::new(),
+                None,
+                None,
+            )
+            .await;
+        Ok(live.handle.clone())
+    }
+
+    /// The run's coordinator, when it is still running. A coordinator that has stopped (its
+    /// run failed) is dropped here, so that the run is served from the store.
+    pub(crate) async fn running(&self, run: &str) -> Option<Arc<crate::app::LiveRun>> {
+        let live = self.runs.read().await.get(run).cloned()?;
+        if !live.handle.is_closed() {
+            return Some(live);
+        }
+        let mut runs = self.runs.write().await;
+        if runs.get(run).is_some_and(|l| l.handle.is_closed()) {
+            runs.remove(run);
+        }
+        None
+    }
+}
+
+/// The answer to a request that needs a run's coordinator, for a run without one.
+pub(crate) fn not_running(row: &RunRow) -> ApiError {
+    let id = &row.id;
+    match row.status.as_str() {
+        "active" => ApiError::Conflict(format!(
+            "run {id} is active in the store but not running in this server; see the server log"
+        )),
+        "failed" => ApiError::Conflict(format!(
+            "run {id} failed ({}): it takes no more data and has nothing left to end; its \
+             state, trajectories and export can still be read, and DELETE /v1/runs/{id} \
+             removes it",
+            row.reason.as_deref().unwrap_or("no reason recorded")
+        )),
+        other => ApiError::Conflict(format!("run {id} is {other}: it takes no more data")),
+    }
+}
+
 /// What a run shows now: its live state and trajectories, or its stored result.
 struct View {
     state: Value,
@@ -86,17 +150,17 @@ impl View {
 }
 
 async fn view(state: &AppState, run: &str) -> Result<View, ApiError> {
-    let live = state.runs.read().await.get(run).cloned();
+    let live = state.running(run).await;
     if let Some(live) = live {
+        // Published beside the state: never through the coordinator's queue, so a busy run
+        // answers as fast as an idle one.
         let s = live.handle.state.borrow().clone();
-        // A run that is ending has no coordinator to ask: its stored result is below.
-        if let Ok(trajectories) = live.handle.trajectories().await {
-            return Ok(View {
-                state: serde_json::to_value(&*s).map_err(ApiError::internal)?,
-                trajectories,
-                metrics: None,
-            });
-        }
+        let trajectories = Arc::new(live.handle.trajectories());
+        return Ok(View {
+            state: serde_json::to_value(&*s).map_err(ApiError::internal)?,
+            trajectories,
+            metrics: None,
+        });
     }
     let row = run_row(&state.store, run).await?;
     if let Some(r) = stored_result(&state.store, run).await? {
@@ -107,17 +171,21 @@ async fn view(state: &AppState, run: &str) -> Result<View, ApiError> {
         });
     }
     // A run that failed or whose recovery failed: its latest snapshot and the log after it.
-    let s = history::state_at(
+    let at = history::state_at(
         &state.store,
         run,
         &row.status,
         f64::MAX,
         state.config.coordinator.particle_sample,
+        true,
     )
     .await?;
+    let mut s = at.state;
+    s.t = s.t.filter(|t| *t < f64::MAX);
+    s.reason = row.reason.clone();
     Ok(View {
         state: serde_json::to_value(&s).map_err(ApiError::internal)?,
-        trajectories: Arc::default(),
+        trajectories: Arc::new(at.trajectories),
         metrics: None,
     })
 }
@@ -148,15 +216,18 @@ pub async fn get_state(
                 )));
             }
             let row = run_row(&state.store, &run).await?;
-            let s = history::state_at(
+            let at = history::state_at(
                 &state.store,
                 &run,
                 &row.status,
                 t,
                 state.config.coordinator.particle_sample,
+                false,
             )
             .await?;
-            Ok(Json(serde_json::to_value(&s).map_err(ApiError::internal)?))
+            Ok(Json(
+                serde_json::to_value(&at.state).map_err(ApiError::internal)?,
+            ))
         }
         None => Ok(Json(view(&state, &run).await?.state)),
     }
@@ -308,26 +379,43 @@ async fn export_header(store: &Store, row: &RunRow) -> Result<LogHeader, ApiErro
         .await?
         .into_iter()
         .map(|r| {
-            Ok(RobotStart {
+            // A start pose that cannot be read back (a run that failed for it) is exported
+            // as unknown rather than failing the export.
+            let start = r
+                .start
+                .map(serde_json::from_value::<PoseGaussian>)
+                .transpose()
+                .unwrap_or_else(|e| {
+                    tracing::warn!(run = %row.id, robot = %r.robot_id, error = %e, "unreadable start pose left out of the export");
+                    None
+                });
+            RobotStart {
                 id: r.robot_id,
-                start: r
-                    .start
-                    .map(serde_json::from_value::<PoseGaussian>)
-                    .transpose()
-                    .map_err(ApiError::internal)?,
+                start,
                 t0: r.t0,
-            })
+            }
         })
-        .collect::<Result<_, ApiError>>()?;
+        .collect();
     Ok(header)
 }
 
-/// The stored log as NDJSON: the header, then every record in arrival order.
+/// The stored log as NDJSON: the header, then every record in arrival order, without the
+/// quarantined ones (and any whose stored body cannot be parsed): the log that runs offline
+/// as the run did.
 async fn export_log(store: &Store, row: &RunRow) -> Result<Vec<u8>, ApiError> {
     let header = export_header(store, row).await?;
     let mut out = serde_json::to_vec(&header).map_err(ApiError::internal)?;
     out.push(b'\n');
-    for o in history::all_records(store, &row.id).await? {
+    let stored = history::all_records(store, &row.id).await?;
+    let skipped: std::collections::HashSet<(String, u64)> = crate::poison::usable(&stored)
+        .1
+        .into_iter()
+        .map(|s| (s.robot, s.seq))
+        .collect();
+    for o in stored {
+        if skipped.contains(&(o.robot_id.clone(), o.seq.max(0) as u64)) {
+            continue;
+        }
         out.extend_from_slice(o.body.as_bytes());
         out.push(b'\n');
     }
@@ -543,10 +631,11 @@ pub async fn rerun(
     tokio::spawn(async move {
         if let Err(e) = feed_rerun(&st, &src, &dst).await {
             tracing::error!(run = %dst, source = %src, error = %e, "re-run failed");
-            let _ = st
-                .store
-                .set_run_status(&dst, fleetslam_store::STATUS_FAILED, None)
-                .await;
+            let reason = match &e {
+                ApiError::Internal(inner) => format!("feeding the re-run failed: {inner:#}"),
+                other => format!("feeding the re-run failed: {other}"),
+            };
+            let _ = st.store.set_run_failed(&dst, &reason).await;
             st.runs.write().await.remove(&dst);
         }
     });
@@ -557,7 +646,8 @@ pub async fn rerun(
 /// Feeds a run's stored log, in arrival order, to a new run and ends it.
 async fn feed_rerun(state: &AppState, src: &str, dst: &str) -> Result<(), ApiError> {
     let live = state.live(dst).await?;
-    let records = history::parse_records(&history::all_records(&state.store, src).await?)?;
+    // Quarantined records stay out of the re-run, as they stayed out of the source.
+    let records = history::parse_records(&history::all_records(&state.store, src).await?);
     for chunk in records.chunks(512) {
         loop {
             match live.handle.ingest(chunk.to_vec()).await {
@@ -592,7 +682,7 @@ pub async fn delete_run(
     Path(run): Path<String>,
 ) -> Result<StatusCode, ApiError> {
     check_admin(&state, &headers)?;
-    if state.runs.read().await.contains_key(&run) {
+    if state.running(&run).await.is_some() {
         return Err(ApiError::Conflict(format!(
             "run {run} is active: end it first with POST /v1/runs/{run}/end"
         )));

@@ -2,9 +2,11 @@
 //! with `tower::ServiceExt::oneshot`.
 
 use crate::api_history;
+use crate::auth::AuthConfig;
 use crate::coordinator::{self, CoordinatorConfig, RecordAck, RunHandle, RunState};
 use crate::error::ApiError;
 use crate::history;
+use crate::limits::Limits;
 use axum::body::Bytes;
 use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
 use axum::extract::{DefaultBodyLimit, Path, Query, State};
@@ -17,8 +19,6 @@ use fleetslam_core::log::{LogHeader, Record};
 use fleetslam_core::pose::PoseGaussian;
 use fleetslam_store::{NewRobot, NewRun, RunFilter, Store};
 use serde::{Deserialize, Serialize};
-use crate::auth::AuthConfig;
-use crate::limits::Limits;
 use std::collections::HashMap;
 use std::sync::Arc;
 use tokio::sync::RwLock;
@@ -78,6 +78,7 @@ pub struct AppState {
     /// Held while a run is created, so that `max_active_runs` holds under concurrent
     /// requests.
     creating: Arc<tokio::sync::Mutex<()>>,
+    pub(crate) ws: Arc<crate::ws_limit::WsLimits>,
 }
 
 impl AppState {
@@ -88,6 +89,7 @@ impl AppState {
             runs: Arc::default(),
             metrics: Arc::default(),
             creating: Arc::default(),
+            ws: Arc::default(),
         }
     }
 
@@ -121,18 +123,11 @@ impl AppState {
     }
 
     pub(crate) async fn live(&self, id: &str) -> Result<Arc<LiveRun>, ApiError> {
-        if let Some(r) = self.runs.read().await.get(id) {
-            return Ok(r.clone());
+        if let Some(r) = self.running(id).await {
+            return Ok(r);
         }
         match self.store.get_run(id).await? {
-            Some(row) if row.status == "active" => Err(ApiError::Conflict(format!(
-                "run {id} is active in the store but not running in this server (its recovery \
-                 failed at start; see the server log)"
-            ))),
-            Some(row) => Err(ApiError::Conflict(format!(
-                "run {id} is {}: it takes no more data",
-                row.status
-            ))),
+            Some(row) => Err(api_history::not_running(&row)),
             None => Err(ApiError::NotFound(format!(
                 "no run {id}: list runs with GET /v1/runs"
             ))),
@@ -704,10 +699,14 @@ pub(crate) async fn live(
     State(state): State<AppState>,
     Path(run): Path<String>,
     ws: WebSocketUpgrade,
+    permit: crate::ws_limit::WsPermit,
 ) -> Result<Response, ApiError> {
     let live = state.live(&run).await?;
     let rate = state.config.coordinator.state_rate_hz;
-    Ok(ws.on_upgrade(move |socket| stream_run(socket, live.handle.clone(), rate)))
+    Ok(ws.on_upgrade(move |socket| async move {
+        let _slot = permit; // held for as long as the connection lives
+        stream_run(socket, live.handle.clone(), rate).await
+    }))
 }
 
 /// Streams `{"type":"state",...}` at most `rate` times a second (always the newest state: a

@@ -85,15 +85,16 @@ pub enum Access {
 /// (refused), `Some(None)` for a listed route without that method (axum answers 405).
 pub fn policy(method: &Method, route: &str) -> Option<Option<Access>> {
     use Access::*;
-    let m = |get: Option<Access>, post: Option<Access>, put: Option<Access>, del: Option<Access>| {
-        Some(match *method {
-            Method::GET | Method::HEAD => get,
-            Method::POST => post,
-            Method::PUT => put,
-            Method::DELETE => del,
-            _ => None,
-        })
-    };
+    let m =
+        |get: Option<Access>, post: Option<Access>, put: Option<Access>, del: Option<Access>| {
+            Some(match *method {
+                Method::GET | Method::HEAD => get,
+                Method::POST => post,
+                Method::PUT => put,
+                Method::DELETE => del,
+                _ => None,
+            })
+        };
     match route {
         "/healthz" | "/v1/openapi.json" => m(Some(Public), None, None, None),
         "/metrics" | "/v1/models" => m(Some(Read), None, None, None),
@@ -189,7 +190,9 @@ pub fn parse_origin(o: &str) -> Result<String, String> {
         return Err(format!("{o:?} is not an origin (scheme://host[:port])"));
     };
     if uri.path() != "/" && !uri.path().is_empty() || uri.query().is_some() {
-        return Err(format!("{o:?} has a path: an origin is scheme://host[:port]"));
+        return Err(format!(
+            "{o:?} has a path: an origin is scheme://host[:port]"
+        ));
     }
     let scheme = scheme.to_ascii_lowercase();
     let host = auth.host().to_ascii_lowercase();

@@ -73,6 +73,12 @@ pub struct ServerConfig {
     pub max_active_runs: usize,
     /// Longest run name, robot id or model id [bytes]. Default 128.
     pub max_name_bytes: usize,
+    /// Websocket clients (`GET /v1/runs/{id}/live`) of one run at a time; one more gets a
+    /// JSON 503 before the upgrade. Default 32. Each costs a task and a state serialization
+    /// per publication.
+    pub ws_max_per_run: usize,
+    /// Websocket clients of all runs together; one more gets a JSON 503. Default 256.
+    pub ws_max_total: usize,
 }
 
 impl Default for ServerConfig {
@@ -101,12 +107,14 @@ impl Default for ServerConfig {
             max_robots_per_run: Limits::default().max_robots_per_run,
             max_active_runs: Limits::default().max_active_runs,
             max_name_bytes: Limits::default().max_name_bytes,
+            ws_max_per_run: crate::ws_limit::DEFAULT_WS_MAX_PER_RUN,
+            ws_max_total: crate::ws_limit::DEFAULT_WS_MAX_TOTAL,
         }
     }
 }
 
 /// The environment variables read, each overriding the field of the same name.
-pub const ENV_KEYS: [&str; 23] = [
+pub const ENV_KEYS: [&str; 25] = [
     "bind",
     "data_dir",
     "database_url",
@@ -130,6 +138,8 @@ pub const ENV_KEYS: [&str; 23] = [
     "max_robots_per_run",
     "max_active_runs",
     "max_name_bytes",
+    "ws_max_per_run",
+    "ws_max_total",
 ];
 
 impl ServerConfig {
@@ -198,6 +208,9 @@ impl ServerConfig {
         }
         if self.snapshot_every == 0 {
             return Err("snapshot_every must be at least 1".into());
+        }
+        if self.ws_max_per_run == 0 || self.ws_max_total == 0 {
+            return Err("ws_max_per_run and ws_max_total must be at least 1".into());
         }
         if self.body_limit_bytes < 1024 {
             return Err(format!(
@@ -275,6 +288,8 @@ impl ServerConfig {
                 particle_sample: self.particle_sample,
                 snapshot_every: self.snapshot_every,
                 max_future_s: self.max_future_s,
+                ws_max_per_run: self.ws_max_per_run,
+                ws_max_total: self.ws_max_total,
             },
         }
     }

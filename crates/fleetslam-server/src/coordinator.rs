@@ -8,10 +8,17 @@
 //! the filter's rayon work runs, off the async runtime. The state it publishes is the
 //! latest estimate in a `watch` channel: readers always see the newest, and a slow reader
 //! never slows the filter or makes memory grow.
+//!
+//! A record the filter fails or panics on is quarantined ([`crate::poison`]): marked in the
+//! store with the reason, counted in its robot's status, announced as a `record_quarantined`
+//! event, and the filter is rebuilt without it; the run goes on. A run whose filter cannot be
+//! rebuilt becomes `failed` in the store with the reason; it stays readable and deletable.
 
 use crate::error::ApiError;
 use crate::history::{self, RunMetrics, RunSnapshot, Trajectories};
 use crate::merge::{MergeError, Merger, OrderKey};
+use crate::poison;
+use crate::track::TrajectoryLog;
 use fleetslam_core::filter::StepReport;
 use fleetslam_core::log::Record;
 use fleetslam_core::pose::{Pose2, PoseGaussian};
@@ -40,6 +47,13 @@ pub struct CoordinatorConfig {
     /// How far a record's time may lie ahead of the run's clock [s] (see
     /// [`Coordinator::clock`]).
     pub max_future_s: f64,
+    /// Websocket clients (`GET live`) of one run at a time; more get a 503. Default
+    /// [`crate::ws_limit::DEFAULT_WS_MAX_PER_RUN`] (32). Each costs a task and a state
+    /// serialization per publication.
+    pub ws_max_per_run: usize,
+    /// Websocket clients of all runs together; more get a 503. Default
+    /// [`crate::ws_limit::DEFAULT_WS_MAX_TOTAL`] (256).
+    pub ws_max_total: usize,
 }
 
 impl Default for CoordinatorConfig {
@@ -51,6 +65,8 @@ impl Default for CoordinatorConfig {
             particle_sample: 100,
             snapshot_every: 2000,
             max_future_s: crate::limits::Limits::default().max_future_s,
+            ws_max_per_run: crate::ws_limit::DEFAULT_WS_MAX_PER_RUN,
+            ws_max_total: crate::ws_limit::DEFAULT_WS_MAX_TOTAL,
         }
     }
 }
@@ -101,6 +117,12 @@ pub struct RobotStatus {
     pub queue_depth: usize,
     /// How far (in data time) the filter is behind this robot's latest record [s].
     pub lag_s: f64,
+    /// Its stored records the filter failed or panicked on (or whose stored body could not
+    /// be read back): quarantined, skipped by the filter, recovery, scrubbing, re-runs and
+    /// exports. Their seqs stay taken.
+    pub quarantined: u64,
+    /// Why the latest of them was quarantined.
+    pub quarantine_reason: Option<String>,
 }
 
 /// A landmark of the best particle.
@@ -131,16 +153,41 @@ pub struct RunState {
     pub particle_sample: BTreeMap<String, Vec<[f64; 4]>>,
     /// Median filter step time over the last publication interval [ms].
     pub step_ms: f64,
+    /// Why the run failed (status `failed`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
 }
 
 /// Events streamed to websocket clients besides the state.
 #[derive(Debug, Clone, Serialize, PartialEq)]
 #[serde(tag = "event", rename_all = "snake_case")]
 pub enum Event {
-    RobotJoined { robot: String, mode: String },
-    Resampled { applied: u64, ess: f64 },
-    LandmarkAdded { applied: u64, count: usize },
-    LandmarkRemoved { applied: u64, count: usize },
+    RobotJoined {
+        robot: String,
+        mode: String,
+    },
+    Resampled {
+        applied: u64,
+        ess: f64,
+    },
+    LandmarkAdded {
+        applied: u64,
+        count: usize,
+    },
+    LandmarkRemoved {
+        applied: u64,
+        count: usize,
+    },
+    /// A record the filter failed or panicked on: it is skipped, the run goes on.
+    RecordQuarantined {
+        robot: String,
+        seq: u64,
+        reason: String,
+    },
+    /// The run could not go on: it is `failed` (readable, deletable).
+    RunFailed {
+        reason: String,
+    },
     RunEnded,
 }
 
@@ -166,9 +213,6 @@ pub enum Command {
     End {
         reply: oneshot::Sender<Result<(), ApiError>>,
     },
-    Trajectories {
-        reply: oneshot::Sender<Result<Arc<Trajectories>, ApiError>>,
-    },
     /// Store a snapshot now (on shutdown) and answer once it is stored.
     Checkpoint {
         reply: oneshot::Sender<Result<(), ApiError>>,
@@ -181,6 +225,10 @@ pub struct RunHandle {
     pub id: String,
     tx: mpsc::Sender<Command>,
     pub state: watch::Receiver<Arc<RunState>>,
+    /// The trajectories, published with each state (just before it): readers never ask the
+    /// coordinator, and a publication shares the trajectories' sealed chunks (see
+    /// [`TrajectoryLog`]).
+    pub trajectories: watch::Receiver<Arc<TrajectoryLog>>,
     pub events: broadcast::Sender<Event>,
 }
 
@@ -198,12 +246,27 @@ impl RunHandle {
                 ),
                 retry_after_s: 1,
             },
-            mpsc::error::TrySendError::Closed(_) => {
-                ApiError::Conflict(format!("run {} has ended", self.id))
-            }
+            mpsc::error::TrySendError::Closed(_) => self.gone(),
         })?;
-        rx.await
-            .map_err(|_| ApiError::Conflict(format!("run {} has ended", self.id)))?
+        rx.await.map_err(|_| self.gone())?
+    }
+
+    /// The answer to a request the coordinator can no longer take.
+    fn gone(&self) -> ApiError {
+        let state = self.state.borrow();
+        match (&*state.status, &state.reason) {
+            ("failed", Some(reason)) => ApiError::Conflict(format!(
+                "run {} failed ({reason}): it takes no more data; its state, trajectories and \
+                 export can still be read, and DELETE /v1/runs/{} removes it",
+                self.id, self.id
+            )),
+            _ => ApiError::Conflict(format!("run {} has ended", self.id)),
+        }
+    }
+
+    /// True once the coordinator has stopped (the run ended or failed).
+    pub fn is_closed(&self) -> bool {
+        self.tx.is_closed()
     }
 
     pub async fn ingest(&self, records: Vec<Record>) -> Result<Vec<RecordAck>, ApiError> {
@@ -243,8 +306,10 @@ impl RunHandle {
             .map_err(|_| ApiError::Conflict(format!("run {} has ended", self.id)))?
     }
 
-    pub async fn trajectories(&self) -> Result<Arc<Trajectories>, ApiError> {
-        self.call(|reply| Command::Trajectories { reply }).await
+    /// The latest published trajectories, copied out on the caller's side (never through
+    /// the command queue). Read after the state, they are at least as new as it.
+    pub fn trajectories(&self) -> Trajectories {
+        self.trajectories.borrow().to_map()
     }
 
     /// Requests waiting in the queue.
@@ -264,6 +329,9 @@ struct Acked {
     records: u64,
     /// Repeats of a stored seq with other content.
     seq_conflicts: u64,
+    /// Quarantined records and the latest one's reason.
+    quarantined: u64,
+    quarantine_reason: Option<String>,
 }
 
 impl Acked {
@@ -308,11 +376,15 @@ pub struct Recovered {
     /// The latest snapshot's filter position (its filter is the one passed to [`spawn`]).
     pub applied: u64,
     pub last: Option<OrderKey>,
-    pub trajectories: Trajectories,
+    pub trajectories: TrajectoryLog,
+    /// How many points of each robot's trajectory the store's pieces already hold.
+    pub trajectories_stored: BTreeMap<String, usize>,
     /// Every registered robot: its start time and its stored records' seq -> t.
     pub robots: Vec<(String, f64, BTreeMap<u64, f64>)>,
     /// Stored records not in the snapshot, to apply again (in any order).
     pub pending: Vec<Record>,
+    /// Per robot: how many of its stored records are quarantined, and the latest reason.
+    pub quarantined: BTreeMap<String, (u64, String)>,
 }
 
 /// Starts the coordinator of a new run (`recovered: None`; its filter has no robots yet) or
@@ -328,9 +400,10 @@ pub fn spawn(
     let (tx, rx) = mpsc::channel(cfg.queue_capacity.max(1));
     let (events, _) = broadcast::channel(256);
     let snapshots = spawn_snapshot_writer(id.clone(), store.clone());
+    let (traj_tx, traj_rx) = watch::channel(Arc::new(TrajectoryLog::new()));
     let mut task = Coordinator {
         id: id.clone(),
-        filter: Some(filter),
+        filter: None,
         store,
         merger: Merger::new(cfg.reorder_window),
         acked: HashMap::new(),
@@ -338,7 +411,11 @@ pub fn spawn(
         first_t: None,
         applied: 0,
         last_snapshot: 0,
-        trajectories: Arc::new(Trajectories::new()),
+        base: Arc::new(filter.clone()),
+        since: Vec::new(),
+        failed: None,
+        traj_sent: BTreeMap::new(),
+        trajectories: TrajectoryLog::new(),
         all_step_ns: Vec::new(),
         snapshots,
         training,
@@ -348,13 +425,15 @@ pub fn spawn(
         dirty: false,
         events: events.clone(),
         state_tx: None,
+        traj_tx,
         cfg,
     };
     if let Some(r) = recovered {
         let now = Instant::now();
         task.applied = r.applied;
         task.last_snapshot = r.applied;
-        task.trajectories = Arc::new(r.trajectories);
+        task.trajectories = r.trajectories;
+        task.traj_sent = r.trajectories_stored;
         task.merger.restore_applied(r.last);
         for (robot, t0, seqs) in &r.robots {
             task.merger.restore_robot(robot, *t0, seqs, now);
@@ -366,39 +445,69 @@ pub fn spawn(
         for rec in r.pending {
             task.merger.restore_pending(rec);
         }
+        for (robot, (n, reason)) in r.quarantined {
+            if let Some(a) = task.acked.get_mut(&robot) {
+                a.quarantined = n;
+                a.quarantine_reason = Some(reason);
+            }
+        }
     }
+    task.filter = Some(filter);
     let (state_tx, state_rx) = watch::channel(Arc::new(task.build_state()));
+    task.traj_tx
+        .send_replace(Arc::new(task.trajectories.clone()));
     task.state_tx = Some(state_tx);
     tokio::spawn(task.run(rx));
     RunHandle {
         id,
         tx,
         state: state_rx,
+        trajectories: traj_rx,
         events,
     }
 }
 
 /// A snapshot to write with the training rows recorded since the previous one, and who
 /// waits for it.
-type SnapshotJob = (
-    RunSnapshot,
-    Vec<String>,
-    Option<oneshot::Sender<Result<(), ApiError>>>,
-);
+struct SnapshotJob {
+    snap: RunSnapshot,
+    rows: Vec<String>,
+    /// The trajectory points added since the previous snapshot, and the index each robot's
+    /// new points start at.
+    points: (Trajectories, BTreeMap<String, usize>),
+    reply: Option<oneshot::Sender<Result<(), ApiError>>>,
+}
 
 /// Writes a run's snapshots one after another (so that a later one is never overwritten by
-/// an earlier one), encoding them off the async runtime.
+/// an earlier one), encoding them off the async runtime. Each snapshot's new trajectory
+/// points are stored first (pieces that failed to store are tried again with the next
+/// snapshot, so the pieces never have a hole), then the snapshot that covers them.
 fn spawn_snapshot_writer(run: String, store: Store) -> mpsc::UnboundedSender<SnapshotJob> {
     let (tx, mut rx) = mpsc::unbounded_channel::<SnapshotJob>();
     tokio::spawn(async move {
-        while let Some((snap, rows, reply)) = rx.recv().await {
+        let mut unstored: Vec<fleetslam_store::TrajectoryChunk> = Vec::new();
+        while let Some(job) = rx.recv().await {
+            let SnapshotJob {
+                snap,
+                rows,
+                points,
+                reply,
+            } = job;
             let applied = snap.applied;
             let t = snap.filed_t();
             let res = async {
                 store.append_training(&run, &rows).await?;
-                let data = tokio::task::spawn_blocking(move || snap.encode())
-                    .await
-                    .map_err(ApiError::internal)??;
+                let (data, chunks) = tokio::task::spawn_blocking(move || {
+                    Ok::<_, ApiError>((
+                        snap.encode()?,
+                        history::trajectory_chunks(&points.0, &points.1)?,
+                    ))
+                })
+                .await
+                .map_err(ApiError::internal)??;
+                unstored.extend(chunks);
+                store.put_trajectory_chunks(&run, &unstored).await?;
+                unstored.clear();
                 store
                     .put_snapshot(
                         &run,
@@ -437,7 +546,15 @@ struct Coordinator {
     applied: u64,
     /// `applied` at the last snapshot.
     last_snapshot: u64,
-    trajectories: Arc<Trajectories>,
+    /// The filter as of the last snapshot (or the start), and the records applied since:
+    /// what the filter is rebuilt from after a poison record, as a restart would.
+    base: Arc<LateJoinSlam>,
+    since: Vec<Record>,
+    /// Why the run failed, once it has.
+    failed: Option<String>,
+    /// How many trajectory points of each robot went to the snapshot writer.
+    traj_sent: BTreeMap<String, usize>,
+    trajectories: TrajectoryLog,
     /// Every step time of this process's life of the run [ns].
     all_step_ns: Vec<u64>,
     snapshots: mpsc::UnboundedSender<SnapshotJob>,
@@ -451,6 +568,7 @@ struct Coordinator {
     dirty: bool,
     events: broadcast::Sender<Event>,
     state_tx: Option<watch::Sender<Arc<RunState>>>,
+    traj_tx: watch::Sender<Arc<TrajectoryLog>>,
     cfg: CoordinatorConfig,
 }
 
@@ -501,9 +619,6 @@ impl Coordinator {
                         ended = true;
                         end_reply = Some(reply);
                     }
-                    Command::Trajectories { reply } => {
-                        let _ = reply.send(Ok(self.trajectories.clone()));
-                    }
                     Command::Checkpoint { reply } => checkpoints.push(reply),
                 }
             }
@@ -513,6 +628,16 @@ impl Coordinator {
             let ready = self.merger.ready(Instant::now(), ended);
             if !ready.is_empty() {
                 self.apply(ready).await;
+            }
+            if let Some(reason) = &self.failed {
+                if let Some(reply) = end_reply.take() {
+                    let _ = reply.send(Err(ApiError::Conflict(format!(
+                        "run {} failed while ending ({reason}); its state, trajectories and \
+                         export can still be read, and DELETE /v1/runs/{} removes it",
+                        self.id, self.id
+                    ))));
+                }
+                break;
             }
             if ended {
                 self.status = "ended".into();
@@ -551,15 +676,28 @@ impl Coordinator {
                 .merger
                 .applied_key()
                 .map(|k| (k.t(), k.robot().to_string(), k.seq())),
-            trajectories: (*self.trajectories).clone(),
+            // The points are stored in pieces beside it: only those added since the
+            // previous snapshot go with this one.
+            trajectories: Trajectories::new(),
+            trajectory_lens: Some(self.trajectories.lens()),
             training: self.training.as_ref().map(|(c, _)| *c),
         };
         let rows = self.training.as_ref().map_or_else(Vec::new, |(_, r)| {
             r.drain_rows().iter().map(|row| row.to_json()).collect()
         });
+        let points = self.trajectories.since(&self.traj_sent);
+        let from = std::mem::replace(&mut self.traj_sent, self.trajectories.lens());
         self.last_snapshot = self.applied;
-        if let Err(mpsc::error::SendError((_, _, Some(reply)))) =
-            self.snapshots.send((snap, rows, reply))
+        self.base = Arc::new(filter.clone());
+        self.since.clear();
+        let job = SnapshotJob {
+            snap,
+            rows,
+            points: (points, from),
+            reply,
+        };
+        if let Err(mpsc::error::SendError(job)) = self.snapshots.send(job)
+            && let Some(reply) = job.reply
         {
             let _ = reply.send(Err(ApiError::internal(anyhow::anyhow!(
                 "the snapshot writer has stopped"
@@ -574,9 +712,10 @@ impl Coordinator {
         rx.await.map_err(ApiError::internal)??;
         let state = self.build_state();
         let metrics = self.metrics(&state);
+        let trajectories = self.trajectories.to_map();
         let body = serde_json::to_string(&history::RunResult {
             state: &state,
-            trajectories: &self.trajectories,
+            trajectories: &trajectories,
             metrics: &metrics,
         })
         .map_err(ApiError::internal)?;
@@ -600,11 +739,7 @@ impl Coordinator {
         let stats = filter.slam().stats();
         RunMetrics {
             applied: self.applied,
-            t_start: self
-                .trajectories
-                .values()
-                .filter_map(|p| p.first().map(|p| p[0]))
-                .reduce(f64::min),
+            t_start: self.trajectories.first_t(),
             step_ms_p50: pct(0.5),
             step_ms_p95: pct(0.95),
             step_ms_mean: if ns.is_empty() {
@@ -652,7 +787,7 @@ impl Coordinator {
             .expect("the filter is home between steps");
         let added = match &start {
             Some(s) => filter.add_robot(&robot, s, t0).map(|i| {
-                Arc::make_mut(&mut self.trajectories).insert(
+                self.trajectories.insert(
                     robot.clone(),
                     vec![history::trajectory_point(filter.slam(), i, t0)],
                 );
@@ -900,60 +1035,71 @@ impl Coordinator {
         }
     }
 
-    /// Steps the filter through `records` on a blocking thread.
+    /// Steps the filter through `records` on a blocking thread. A record the filter fails
+    /// or panics on is quarantined and the filter rebuilt without it (see [`poison`]); a
+    /// filter that cannot be rebuilt fails the run.
     async fn apply(&mut self, records: Vec<Record>) {
         let mut filter = self
             .filter
             .take()
             .expect("the filter is home between steps");
         let mut trajectories = std::mem::take(&mut self.trajectories);
+        let base = self.base.clone();
+        let mut since = std::mem::take(&mut self.since);
+        let recorder = self.training.as_ref().map(|(_, r)| r.clone());
         let res = tokio::task::spawn_blocking(move || {
-            let mut reports: Vec<(Option<StepReport>, u64)> = Vec::with_capacity(records.len());
-            let mut errors = Vec::new();
-            let mut joins = Vec::new();
-            let traj = Arc::make_mut(&mut trajectories);
-            for r in &records {
+            let mut out = Applied::default();
+            for r in records {
                 let t0 = Instant::now();
-                match filter.step(r) {
+                match poison::try_step(&mut filter, &r) {
                     Ok(rep) => {
                         let ns = t0.elapsed().as_nanos() as u64;
                         if rep.joined {
-                            joins.push(r.robot.clone());
+                            out.joins.push(r.robot.clone());
                         }
-                        reports.push((rep.slam, ns));
+                        out.reports.push((rep.slam, ns));
                         if let Some(i) = filter.slam().robot_index(&r.robot) {
-                            traj.entry(r.robot.clone())
-                                .or_default()
-                                .push(history::trajectory_point(filter.slam(), i, r.t));
+                            trajectories
+                                .push(&r.robot, history::trajectory_point(filter.slam(), i, r.t));
+                        }
+                        since.push(r);
+                    }
+                    Err(why) => {
+                        out.quarantined.push((r.robot.clone(), r.seq, why));
+                        match poison::rebuild(&base, &since, recorder.as_deref()) {
+                            Ok(f) => filter = f,
+                            Err(e) => {
+                                out.fatal = Some(e);
+                                break;
+                            }
                         }
                     }
-                    Err(e) => errors.push(format!("record {} of robot {:?}: {e}", r.seq, r.robot)),
                 }
             }
-            (filter, trajectories, reports, errors, joins)
+            (filter, trajectories, since, out)
         })
         .await;
-        let (filter, trajectories, reports, errors, joins) = match res {
+        let (filter, trajectories, since, out) = match res {
             Ok(v) => v,
             Err(e) => {
-                tracing::error!(run = %self.id, error = %e, "filter step panicked; the run stops");
-                self.status = "failed".into();
+                // Only a bug outside the guarded steps gets here; the filter is lost.
+                self.fail(format!("the coordinator's step thread failed: {e}"))
+                    .await;
                 return;
             }
         };
-        self.filter = Some(filter);
         self.trajectories = trajectories;
-        for e in errors {
-            // Records are validated before they are stored; a step error is a bug.
-            tracing::error!(run = %self.id, error = %e, "a stored record could not be applied");
+        self.since = since;
+        if out.fatal.is_none() {
+            self.filter = Some(filter);
         }
-        for robot in joins {
+        for robot in out.joins {
             let _ = self.events.send(Event::RobotJoined {
                 robot,
                 mode: "mapping".into(),
             });
         }
-        for (rep, ns) in reports {
+        for (rep, ns) in out.reports {
             self.applied += 1;
             self.step_ns.push(ns);
             self.all_step_ns.push(ns);
@@ -977,6 +1123,64 @@ impl Coordinator {
                 });
             }
         }
+        for (robot, seq, reason) in out.quarantined {
+            self.quarantine(robot, seq, reason).await;
+        }
+        if let Some(e) = out.fatal {
+            self.fail(e).await;
+        }
+    }
+
+    /// Records a quarantined record: in the store (so that a restart skips it), in its
+    /// robot's status and as an event.
+    async fn quarantine(&mut self, robot: String, seq: u64, reason: String) {
+        tracing::warn!(run = %self.id, robot = %robot, seq, reason = %reason, "record quarantined");
+        match self
+            .store
+            .quarantine(&self.id, &robot, seq as i64, &reason)
+            .await
+        {
+            Ok(true) => {}
+            Ok(false) => {
+                tracing::error!(run = %self.id, robot = %robot, seq, "a quarantined record is not in the store")
+            }
+            // A restart applies it again, fails again and quarantines it then.
+            Err(e) => {
+                tracing::error!(run = %self.id, robot = %robot, seq, error = %e, "marking a quarantined record failed")
+            }
+        }
+        if let Some(a) = self.acked.get_mut(&robot) {
+            a.quarantined += 1;
+            a.quarantine_reason = Some(reason.clone());
+        }
+        let _ = self
+            .events
+            .send(Event::RecordQuarantined { robot, seq, reason });
+        self.dirty = true;
+    }
+
+    /// The run cannot go on: it becomes `failed` in the store with the reason, its last
+    /// state is published with that status, and the coordinator stops (the caller breaks
+    /// out of its loop).
+    async fn fail(&mut self, reason: String) {
+        tracing::error!(run = %self.id, reason = %reason, "the run failed");
+        self.status = "failed".into();
+        if let Err(e) = self.store.set_run_failed(&self.id, &reason).await {
+            tracing::error!(run = %self.id, error = %e, "marking the run failed in the store failed");
+        }
+        if let Some(tx) = &self.state_tx {
+            let mut s = match &self.filter {
+                Some(_) => self.build_state(),
+                None => (**tx.borrow()).clone(),
+            };
+            s.status = "failed".into();
+            s.reason = Some(reason.clone());
+            tx.send_replace(Arc::new(s));
+        }
+        let _ = self.events.send(Event::RunFailed {
+            reason: reason.clone(),
+        });
+        self.failed = Some(reason);
     }
 
     fn min_gap(&self) -> Duration {
@@ -1005,6 +1209,10 @@ impl Coordinator {
         self.last_publish = Some(Instant::now());
         let state = Arc::new(self.build_state());
         self.step_ns.clear();
+        // The trajectories first: a reader that reads the state, then the trajectories, gets
+        // trajectories at least as new as the state.
+        self.traj_tx
+            .send_replace(Arc::new(self.trajectories.clone()));
         if let Some(tx) = &self.state_tx {
             tx.send_replace(state);
         }
@@ -1036,6 +1244,8 @@ impl Coordinator {
                     (Some(l), Some(t)) => (l - t).max(0.0),
                     _ => 0.0,
                 };
+                r.quarantined = a.quarantined;
+                r.quarantine_reason = a.quarantine_reason.clone();
             }
         }
         let mut step_ns = self.step_ns.clone();
@@ -1045,6 +1255,19 @@ impl Coordinator {
             .map_or(0.0, |n| *n as f64 / 1e6);
         state
     }
+}
+
+/// What a batch of steps did, handed back from the blocking thread.
+#[derive(Default)]
+struct Applied {
+    /// Per applied record: the filter's report and the step time [ns].
+    reports: Vec<(Option<StepReport>, u64)>,
+    /// (robot, seq, reason) of the quarantined records.
+    quarantined: Vec<(String, u64, String)>,
+    /// Robots that joined the filter.
+    joins: Vec<String>,
+    /// Why the filter could not be rebuilt, when it could not: the run fails.
+    fatal: Option<String>,
 }
 
 fn reject(seq: u64, code: &'static str, error: String) -> RecordAck {

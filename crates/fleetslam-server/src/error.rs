@@ -153,10 +153,7 @@ pub async fn json_errors(req: axum::extract::Request, next: axum::middleware::Ne
         (StatusCode::METHOD_NOT_ALLOWED, true) => {
             format!("{path} does not take this method")
         }
-        (_, true) => status
-            .canonical_reason()
-            .unwrap_or("refused")
-            .to_string(),
+        (_, true) => status.canonical_reason().unwrap_or("refused").to_string(),
         (_, false) => text,
     };
     let mut out = (

@@ -42,7 +42,16 @@ pub struct RunSnapshot {
     /// Key `(t, robot, seq)` of the last record applied: every stored record of a merged
     /// robot ordered before or at it is in `filter`, every later one is not.
     pub last: Option<(f64, String, u64)>,
+    /// The trajectories, in snapshots written before trajectories were stored in pieces
+    /// (empty in newer ones: see `trajectory_lens`).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub trajectories: Trajectories,
+    /// How many points of each robot's trajectory the snapshot covers; the points are in
+    /// the store's trajectory pieces (each snapshot stores those added since the previous
+    /// one), so a snapshot does not grow with the run's length. `None` in older snapshots,
+    /// which carry `trajectories` whole.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub trajectory_lens: Option<BTreeMap<String, usize>>,
     /// The sampling of landmark updates as training rows, when the run logs them.
     #[serde(default)]
     pub training: Option<RecordingConfig>,
@@ -60,6 +69,25 @@ impl RunSnapshot {
         self.last.as_ref().map_or(f64::MIN, |l| l.0)
     }
 
+    /// The trajectories this snapshot covers: those it carries (older snapshots), or those
+    /// reassembled from the run's stored pieces.
+    pub async fn load_trajectories(
+        &self,
+        store: &Store,
+        run: &str,
+    ) -> Result<Trajectories, ApiError> {
+        match &self.trajectory_lens {
+            None => Ok(self.trajectories.clone()),
+            Some(lens) => {
+                let chunks = store.trajectory_chunks(run).await?;
+                let lens = lens.clone();
+                tokio::task::spawn_blocking(move || assemble_trajectories(chunks, &lens))
+                    .await
+                    .map_err(ApiError::internal)?
+            }
+        }
+    }
+
     pub fn encode(&self) -> Result<Vec<u8>, ApiError> {
         serde_json::to_vec(self).map_err(ApiError::internal)
     }
@@ -69,6 +97,64 @@ impl RunSnapshot {
             ApiError::internal(anyhow::anyhow!("a stored snapshot is unreadable: {e}"))
         })
     }
+}
+
+/// The stored pieces of a run's trajectories as of a snapshot that covers `lens` points of
+/// each robot: pieces are laid end to end (a piece written again after a crash may overlap
+/// the next; points are deterministic, so overlaps agree) and cut to `lens`; points beyond
+/// (written for a snapshot that a crash kept from being stored) are left out.
+pub fn assemble_trajectories(
+    chunks: Vec<fleetslam_store::TrajectoryChunk>,
+    lens: &BTreeMap<String, usize>,
+) -> Result<Trajectories, ApiError> {
+    let mut out: Trajectories = lens.keys().map(|r| (r.clone(), Vec::new())).collect();
+    for c in chunks {
+        let Some(pts) = out.get_mut(&c.robot_id) else {
+            continue;
+        };
+        let want = lens[&c.robot_id];
+        let first = usize::try_from(c.first).unwrap_or(usize::MAX);
+        if pts.len() >= want || first > pts.len() {
+            continue;
+        }
+        let piece: Vec<[f64; 4]> = serde_json::from_str(&c.points).map_err(|e| {
+            ApiError::internal(anyhow::anyhow!(
+                "a stored trajectory piece of robot {:?} is unreadable: {e}",
+                c.robot_id
+            ))
+        })?;
+        let skip = pts.len() - first;
+        pts.extend(piece.into_iter().skip(skip));
+        pts.truncate(want);
+    }
+    for (robot, pts) in &out {
+        if pts.len() != lens[robot] {
+            return Err(ApiError::internal(anyhow::anyhow!(
+                "the stored trajectory of robot {robot:?} has {} points where its snapshot \
+                 covers {}",
+                pts.len(),
+                lens[robot]
+            )));
+        }
+    }
+    Ok(out)
+}
+
+/// The pieces to store with a snapshot: the points of `new` (robot -> points from index
+/// `from[robot]` on), encoded.
+pub fn trajectory_chunks(
+    new: &Trajectories,
+    from: &BTreeMap<String, usize>,
+) -> Result<Vec<fleetslam_store::TrajectoryChunk>, ApiError> {
+    new.iter()
+        .map(|(robot, pts)| {
+            Ok(fleetslam_store::TrajectoryChunk {
+                robot_id: robot.clone(),
+                first: from.get(robot).copied().unwrap_or(0) as i64,
+                points: serde_json::to_string(pts).map_err(ApiError::internal)?,
+            })
+        })
+        .collect()
 }
 
 /// Timing and counts of a run, for comparisons.
@@ -302,7 +388,7 @@ pub fn restore_filter(
         .map_err(|e| ApiError::internal(anyhow::anyhow!("restoring a snapshot: {e}")))
 }
 
-/// Every stored record of a run, in arrival order.
+/// Every stored record of a run, in arrival order (quarantined ones included, marked).
 pub async fn all_records(store: &Store, run: &str) -> Result<Vec<StoredObservation>, ApiError> {
     let mut out = Vec::new();
     let mut after = 0;
@@ -319,19 +405,35 @@ pub async fn all_records(store: &Store, run: &str) -> Result<Vec<StoredObservati
     Ok(out)
 }
 
-/// Parses stored records (they were validated before they were stored).
-pub fn parse_records(obs: &[StoredObservation]) -> Result<Vec<Record>, ApiError> {
-    obs.iter()
-        .map(|o| {
-            serde_json::from_str::<Record>(&o.body).map_err(|e| {
-                ApiError::internal(anyhow::anyhow!(
-                    "stored record {} of robot {:?} is unreadable: {e}",
-                    o.seq,
-                    o.robot_id
-                ))
-            })
-        })
-        .collect()
+/// The stored records of a run with a time in `from_t..=until_t`, in arrival order: through
+/// the store's index on `(run_id, t)`, so the cost is those records, not the whole log.
+pub async fn records_in_time(
+    store: &Store,
+    run: &str,
+    from_t: f64,
+    until_t: f64,
+) -> Result<Vec<StoredObservation>, ApiError> {
+    let mut out = Vec::new();
+    let mut after = 0;
+    loop {
+        let page = store
+            .records_in_time(run, from_t, until_t, after, MAX_RECORDS_PAGE)
+            .await?;
+        let Some(last) = page.last() else { break };
+        after = last.arrival;
+        let n = page.len();
+        out.extend(page);
+        if (n as i64) < MAX_RECORDS_PAGE {
+            break;
+        }
+    }
+    Ok(out)
+}
+
+/// The records to apply of stored ones: quarantined records and records whose stored body
+/// cannot be parsed back are left out (see [`crate::poison::usable`]).
+pub fn parse_records(obs: &[StoredObservation]) -> Vec<Record> {
+    crate::poison::usable(obs).0
 }
 
 /// The records a filter restored from `snap` still has to apply, in the merge order: those
@@ -352,37 +454,62 @@ pub fn records_after_snapshot(
     records
 }
 
+/// A run's state at a time, with its trajectories up to then.
+#[derive(Debug)]
+pub struct StateAt {
+    pub state: RunState,
+    pub trajectories: Trajectories,
+}
+
 /// The state of a run as of data time `t`: its latest snapshot at or before `t`, then its
-/// stored records up to `t`. Deterministic, so a scrubbed state equals what the live run
-/// showed after the same records.
+/// stored records after the snapshot up to `t` (read by time, never the whole log), skipping
+/// quarantined records and any record the filter fails or panics on, as the live run did.
+/// Deterministic, so a scrubbed state equals what the live run showed after the same
+/// records. The trajectories (which cost the whole run's points) are read only when asked
+/// for; otherwise they are left empty.
 pub async fn state_at(
     store: &Store,
     run: &str,
     status: &str,
     t: f64,
     particle_sample: usize,
-) -> Result<RunState, ApiError> {
+    with_trajectories: bool,
+) -> Result<StateAt, ApiError> {
     let snap = store.snapshot_at_or_before(run, t).await?;
     let Some(snap) = snap else {
         return Err(ApiError::NotFound(format!(
             "run {run} has no state at t={t}: it starts later (see GET /v1/runs/{run}/timeline)"
         )));
     };
-    let snap = RunSnapshot::decode(&snap.data)?;
+    let snap = tokio::task::spawn_blocking(move || RunSnapshot::decode(&snap.data))
+        .await
+        .map_err(ApiError::internal)??;
     let last = snap.last_key();
     let mut applied = snap.applied;
     let updater = updater_for(store, &snap.filter.slam.config).await?;
-    let mut filter = restore_filter(snap.filter, updater)?;
-    let mut trajectories = snap.trajectories;
-    let records = parse_records(&all_records(store, run).await?)?;
+    let mut trajectories = if with_trajectories {
+        snap.load_trajectories(store, run).await?
+    } else {
+        Trajectories::new()
+    };
+    let filter = restore_filter(snap.filter, updater)?;
+    // Every record ordered after the snapshot's last one has a time at or after its time.
+    let from_t = last.as_ref().map_or(f64::NEG_INFINITY, OrderKey::t);
+    let records = parse_records(&records_in_time(store, run, from_t, t).await?);
     let todo = records_after_snapshot(records, &filter, last.as_ref(), Some(t));
-    let (filter, applied, applied_t) = tokio::task::spawn_blocking(move || {
+    let (filter, applied, applied_t, trajectories) = tokio::task::spawn_blocking(move || {
+        let base = filter.clone();
+        let mut filter = filter;
+        let mut since = Vec::new();
         let mut applied_t = last.as_ref().map(OrderKey::t);
-        for r in &todo {
-            filter
-                .step(r)
-                .map_err(|e| ApiError::internal(anyhow::anyhow!("replaying: {e}")))?;
-            if let Some(i) = filter.slam().robot_index(&r.robot) {
+        for r in todo {
+            if crate::poison::try_step(&mut filter, &r).is_err() {
+                // The live run quarantined it (or will, on its next restart).
+                filter = crate::poison::rebuild(&base, &since, None)
+                    .map_err(|e| ApiError::internal(anyhow::anyhow!("replaying: {e}")))?;
+                continue;
+            }
+            if with_trajectories && let Some(i) = filter.slam().robot_index(&r.robot) {
                 trajectories
                     .entry(r.robot.clone())
                     .or_default()
@@ -390,14 +517,18 @@ pub async fn state_at(
             }
             applied += 1;
             applied_t = Some(r.t);
+            since.push(r);
         }
-        Ok::<_, ApiError>((filter, applied, applied_t))
+        Ok::<_, ApiError>((filter, applied, applied_t, trajectories))
     })
     .await
     .map_err(ApiError::internal)??;
     let mut state = base_state(run, status, &filter, applied, applied_t, particle_sample);
     state.t = Some(t);
-    Ok(state)
+    Ok(StateAt {
+        state,
+        trajectories,
+    })
 }
 
 /// A run's state from its filter alone: robots that map with their pose estimates, robots
@@ -453,6 +584,8 @@ pub fn base_state(
                 seq_conflicts: 0,
                 queue_depth: 0,
                 lag_s: 0.0,
+                quarantined: 0,
+                quarantine_reason: None,
             }
         })
         .collect();
@@ -478,5 +611,56 @@ pub fn base_state(
             .collect(),
         particle_sample: particles,
         step_ms: 0.0,
+        reason: None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use fleetslam_store::TrajectoryChunk;
+
+    fn pts(range: std::ops::Range<usize>) -> Vec<[f64; 4]> {
+        range.map(|i| [i as f64, 1.0, 2.0, 0.5]).collect()
+    }
+
+    fn chunk(robot: &str, range: std::ops::Range<usize>) -> TrajectoryChunk {
+        TrajectoryChunk {
+            robot_id: robot.into(),
+            first: range.start as i64,
+            points: serde_json::to_string(&pts(range)).unwrap(),
+        }
+    }
+
+    #[test]
+    fn trajectory_pieces_are_laid_end_to_end_and_cut_to_the_snapshot() {
+        let lens = BTreeMap::from([("a".to_string(), 25), ("b".to_string(), 3)]);
+        // A piece written again after a crash overlaps the next; a piece beyond the
+        // snapshot and a robot it does not cover are left out.
+        let chunks = vec![
+            chunk("a", 0..10),
+            chunk("a", 10..18),
+            chunk("a", 12..30),
+            chunk("a", 30..40),
+            chunk("b", 0..3),
+            chunk("c", 0..4),
+        ];
+        let t = assemble_trajectories(chunks, &lens).unwrap();
+        assert_eq!(t["a"], pts(0..25));
+        assert_eq!(t["b"], pts(0..3));
+        assert!(!t.contains_key("c"));
+        // A hole is an error, not a shorter trajectory.
+        let only_a = BTreeMap::from([("a".to_string(), 25)]);
+        assert!(
+            assemble_trajectories(vec![chunk("a", 0..10), chunk("a", 10..30)], &only_a).is_ok()
+        );
+        let e = assemble_trajectories(vec![chunk("a", 0..10), chunk("a", 12..30)], &only_a)
+            .unwrap_err();
+        assert!(matches!(e, ApiError::Internal(_)));
+        // The pieces to store read back.
+        let new = BTreeMap::from([("a".to_string(), pts(5..9))]);
+        let from = BTreeMap::from([("a".to_string(), 5)]);
+        let c = trajectory_chunks(&new, &from).unwrap();
+        assert_eq!(c, vec![chunk("a", 5..9)]);
     }
 }

@@ -20,5 +20,8 @@ pub mod limits;
 pub mod merge;
 pub mod metrics;
 pub mod openapi;
+pub mod poison;
 pub mod recovery;
 pub mod server;
+pub mod track;
+pub mod ws_limit;

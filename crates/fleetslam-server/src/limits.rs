@@ -203,7 +203,11 @@ mod tests {
         let e = l.check_record(&r).unwrap_err();
         assert!(e.contains("max_motion_s"), "{e}");
         r.motion = Some(Motion::Velocity(vec![[0.0, 0.0, 0.01]; 10_001]));
-        assert!(l.check_record(&r).unwrap_err().contains("max_motion_segments"));
+        assert!(
+            l.check_record(&r)
+                .unwrap_err()
+                .contains("max_motion_segments")
+        );
         r.motion = Some(Motion::Velocity(vec![[0.0, 0.0, 0.01]; 10_000]));
         l.check_record(&r).unwrap();
         r.landmarks = vec![
@@ -224,7 +228,11 @@ mod tests {
         g.cov = [[0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.0, 0.0, 0.0]];
         check_start(&g).unwrap();
         g.cov = [[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
-        assert!(check_start(&g).unwrap_err().contains("positive semi-definite"));
+        assert!(
+            check_start(&g)
+                .unwrap_err()
+                .contains("positive semi-definite")
+        );
         g.cov = [[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
         assert!(check_start(&g).is_err());
         g.cov = [[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];

@@ -2,6 +2,11 @@
 //! latest snapshot, and the records stored after that snapshot go back into the merge, so
 //! the run continues exactly as if the server had never stopped (same records, same order,
 //! same random streams: the filter's randomness is a function of (seed, step, particle)).
+//!
+//! Quarantined records are skipped, and a stored record whose body cannot be parsed back is
+//! quarantined now instead of failing the recovery. A run that cannot be recovered becomes
+//! `failed` in the store with the reason: it is no longer tried on each start, and it can
+//! still be read, exported and deleted.
 
 use crate::app::AppState;
 use crate::coordinator::Recovered;
@@ -15,7 +20,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::time::Instant;
 
 /// Recovers every active run; returns how many were recovered. A run that cannot be
-/// recovered is logged and left active in the store (its API answers say so).
+/// recovered is marked `failed` in the store with the reason.
 pub async fn recover(state: &AppState) -> Result<usize, ApiError> {
     let mut n = 0;
     for row in state.store.active_runs().await? {
@@ -31,7 +36,13 @@ pub async fn recover(state: &AppState) -> Result<usize, ApiError> {
                     "run recovered"
                 );
             }
-            Err(e) => tracing::error!(run = %row.id, error = %e, "run could not be recovered"),
+            Err(e) => {
+                tracing::error!(run = %row.id, error = %e, "run could not be recovered: it is marked failed");
+                let reason = format!("its recovery failed: {}", cause(&e));
+                if let Err(e) = state.store.set_run_failed(&row.id, &reason).await {
+                    tracing::error!(run = %row.id, error = %e, "marking the run failed failed");
+                }
+            }
         }
     }
     Ok(n)
@@ -54,17 +65,20 @@ async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> 
     };
     let training_cfg = snap.as_ref().and_then(|s| s.training);
     let (updater, training) = history::recording(updater, training_cfg)?;
-    let (mut filter, applied, last, mut trajectories) = match snap {
+    let (mut filter, applied, last, mut trajectories, stored_lens) = match snap {
         Some(snap) => {
             let last = snap.last_key();
+            let trajectories = snap.load_trajectories(store, &row.id).await?;
+            let stored_lens = snap.trajectory_lens.clone().unwrap_or_default();
             let filter = history::restore_filter(snap.filter, updater)?;
-            (filter, snap.applied, last, snap.trajectories)
+            (filter, snap.applied, last, trajectories, stored_lens)
         }
         None => (
             history::new_filter(&config, LocalizeConfig::default(), updater)?,
             0,
             None,
             Trajectories::new(),
+            BTreeMap::new(),
         ),
     };
     // A robot stored but not in the latest snapshot was being registered when the server
@@ -107,7 +121,19 @@ async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> 
             )
         })
         .collect();
-    let records = history::parse_records(&stored)?;
+    let (records, skipped) = crate::poison::usable(&stored);
+    let mut quarantined: BTreeMap<String, (u64, String)> = BTreeMap::new();
+    for s in skipped {
+        if !s.marked {
+            tracing::warn!(run = %row.id, robot = %s.robot, seq = s.seq, reason = %s.reason, "stored record quarantined");
+            store
+                .quarantine(&row.id, &s.robot, s.seq as i64, &s.reason)
+                .await?;
+        }
+        let q = quarantined.entry(s.robot).or_insert((0, String::new()));
+        q.0 += 1;
+        q.1 = s.reason;
+    }
     let pending = history::records_after_snapshot(records, &filter, last.as_ref(), None);
     let n = pending.len();
     let tokens = robots
@@ -128,9 +154,11 @@ async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> 
             Some(Recovered {
                 applied,
                 last,
-                trajectories,
+                trajectories: crate::track::TrajectoryLog::from_map(trajectories),
+                trajectories_stored: stored_lens,
                 robots: robot_states,
                 pending,
+                quarantined,
             }),
             tokens,
             enrollment,
@@ -138,4 +166,13 @@ async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> 
         )
         .await;
     Ok(n)
+}
+
+/// An error's full message, the cause of an internal one included (it is stored as the
+/// reason of the failed run, for its operator).
+fn cause(e: &ApiError) -> String {
+    match e {
+        ApiError::Internal(inner) => format!("{inner:#}"),
+        other => other.to_string(),
+    }
 }

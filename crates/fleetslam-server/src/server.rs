@@ -91,8 +91,7 @@ pub async fn start(cfg: &ServerConfig) -> anyhow::Result<Running> {
 pub async fn shutdown_signal() -> std::io::Result<&'static str> {
     #[cfg(unix)]
     {
-        let mut term =
-            tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
+        let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
         tokio::select! {
             r = tokio::signal::ctrl_c() => r.map(|()| "SIGINT"),
             _ = term.recv() => Ok("SIGTERM"),

@@ -169,6 +169,17 @@ fn sim_log() -> Log {
     log
 }
 
+/// A record with a seq no good record uses.
+trait TapSeq {
+    fn tap_seq(self, seq: u64) -> Value;
+}
+impl TapSeq for Value {
+    fn tap_seq(mut self, seq: u64) -> Value {
+        self["seq"] = json!(seq);
+        self
+    }
+}
+
 fn body(v: &Value) -> Vec<u8> {
     serde_json::to_vec(v).unwrap()
 }
@@ -299,97 +310,726 @@ async fn hostile_inputs_are_refused_clearly_and_change_nothing() {
 
     let cases: Vec<Case> = vec![
         // --- authorization
-        case("create without a token", "POST", "/v1/runs", None, run_body("x"), 401, "unauthorized", "admin token"),
-        case("create with a wrong token", "POST", "/v1/runs", Some("not-the-admin-token-xx"), run_body("x"), 401, "unauthorized", "admin token"),
-        case("create with a robot token", "POST", "/v1/runs", Some(&t1), run_body("x"), 401, "unauthorized", "admin token"),
-        case("create with an enrollment token", "POST", "/v1/runs", Some(&enroll), run_body("x"), 401, "unauthorized", "admin token"),
-        case("create with the read token", "POST", "/v1/runs", Some(READ), run_body("x"), 401, "unauthorized", "admin token"),
-        case("create with a Basic scheme", "POST", "/v1/runs", None, run_body("x"), 401, "unauthorized", "admin token")
-            .header("authorization", "Basic YWRtaW46YWRtaW4="),
-        case("register without a token", "POST", &robots, None, body(&json!({"id": "9", "start": start})), 401, "unauthorized", "enrollment token"),
-        case("register with another run's enrollment token", "POST", &robots, Some(&other_enroll), body(&json!({"id": "9", "start": start})), 401, "unauthorized", "enrollment token"),
-        case("register with a robot token", "POST", &robots, Some(&t1), body(&json!({"id": "9", "start": start})), 401, "unauthorized", "enrollment token"),
-        case("register with the read token", "POST", &robots, Some(READ), body(&json!({"id": "9", "start": start})), 401, "unauthorized", "enrollment token"),
-        case("post without a token", "POST", &obs, None, body(&rec(1)), 401, "unauthorized", "token"),
-        case("post with the admin token", "POST", &obs, Some(ADMIN), body(&rec(1)), 401, "unauthorized", "robot token"),
-        case("post with the enrollment token", "POST", &obs, Some(&enroll), body(&rec(1)), 401, "unauthorized", "robot token"),
-        case("post with another run's robot token", "POST", &obs, Some(&other_t), body(&rec(1)), 401, "unauthorized", "robot token"),
-        case("post another robot's record", "POST", &obs, Some(&t2), body(&rec(1)), 403, "forbidden", "own records"),
-        case("end with a robot token", "POST", format!("/v1/runs/{run}/end"), Some(&t1), Vec::new(), 401, "unauthorized", "admin token"),
-        case("delete with the read token", "DELETE", format!("/v1/runs/{run}"), Some(READ), Vec::new(), 401, "unauthorized", "admin token"),
-        case("upload truth with the enrollment token", "PUT", format!("/v1/runs/{run}/truth"), Some(&enroll), body(&json!({})), 401, "unauthorized", "admin token"),
-        case("re-run with a robot token", "POST", format!("/v1/runs/{run}/rerun"), Some(&t1), body(&json!({})), 401, "unauthorized", "admin token"),
-        case("read state without a token", "GET", format!("/v1/runs/{run}/state"), None, Vec::new(), 401, "unauthorized", "read token"),
-        case("read state with a robot token", "GET", format!("/v1/runs/{run}/state"), Some(&t1), Vec::new(), 401, "unauthorized", "read token"),
-        case("list runs without a token", "GET", "/v1/runs", None, Vec::new(), 401, "unauthorized", "read token"),
-        case("export with a wrong query token", "GET", format!("/v1/runs/{run}/export?access_token=nope"), None, Vec::new(), 401, "unauthorized", "read token"),
-        case("metrics without a token", "GET", "/metrics", None, Vec::new(), 401, "unauthorized", "read token"),
+        case(
+            "create without a token",
+            "POST",
+            "/v1/runs",
+            None,
+            run_body("x"),
+            401,
+            "unauthorized",
+            "admin token",
+        ),
+        case(
+            "create with a wrong token",
+            "POST",
+            "/v1/runs",
+            Some("not-the-admin-token-xx"),
+            run_body("x"),
+            401,
+            "unauthorized",
+            "admin token",
+        ),
+        case(
+            "create with a robot token",
+            "POST",
+            "/v1/runs",
+            Some(&t1),
+            run_body("x"),
+            401,
+            "unauthorized",
+            "admin token",
+        ),
+        case(
+            "create with an enrollment token",
+            "POST",
+            "/v1/runs",
+            Some(&enroll),
+            run_body("x"),
+            401,
+            "unauthorized",
+            "admin token",
+        ),
+        case(
+            "create with the read token",
+            "POST",
+            "/v1/runs",
+            Some(READ),
+            run_body("x"),
+            401,
+            "unauthorized",
+            "admin token",
+        ),
+        case(
+            "create with a Basic scheme",
+            "POST",
+            "/v1/runs",
+            None,
+            run_body("x"),
+            401,
+            "unauthorized",
+            "admin token",
+        )
+        .header("authorization", "Basic YWRtaW46YWRtaW4="),
+        case(
+            "register without a token",
+            "POST",
+            &robots,
+            None,
+            body(&json!({"id": "9", "start": start})),
+            401,
+            "unauthorized",
+            "enrollment token",
+        ),
+        case(
+            "register with another run's enrollment token",
+            "POST",
+            &robots,
+            Some(&other_enroll),
+            body(&json!({"id": "9", "start": start})),
+            401,
+            "unauthorized",
+            "enrollment token",
+        ),
+        case(
+            "register with a robot token",
+            "POST",
+            &robots,
+            Some(&t1),
+            body(&json!({"id": "9", "start": start})),
+            401,
+            "unauthorized",
+            "enrollment token",
+        ),
+        case(
+            "register with the read token",
+            "POST",
+            &robots,
+            Some(READ),
+            body(&json!({"id": "9", "start": start})),
+            401,
+            "unauthorized",
+            "enrollment token",
+        ),
+        case(
+            "post without a token",
+            "POST",
+            &obs,
+            None,
+            body(&rec(1)),
+            401,
+            "unauthorized",
+            "token",
+        ),
+        case(
+            "post with the admin token",
+            "POST",
+            &obs,
+            Some(ADMIN),
+            body(&rec(1)),
+            401,
+            "unauthorized",
+            "robot token",
+        ),
+        case(
+            "post with the enrollment token",
+            "POST",
+            &obs,
+            Some(&enroll),
+            body(&rec(1)),
+            401,
+            "unauthorized",
+            "robot token",
+        ),
+        case(
+            "post with another run's robot token",
+            "POST",
+            &obs,
+            Some(&other_t),
+            body(&rec(1)),
+            401,
+            "unauthorized",
+            "robot token",
+        ),
+        case(
+            "post another robot's record",
+            "POST",
+            &obs,
+            Some(&t2),
+            body(&rec(1)),
+            403,
+            "forbidden",
+            "own records",
+        ),
+        case(
+            "end with a robot token",
+            "POST",
+            format!("/v1/runs/{run}/end"),
+            Some(&t1),
+            Vec::new(),
+            401,
+            "unauthorized",
+            "admin token",
+        ),
+        case(
+            "delete with the read token",
+            "DELETE",
+            format!("/v1/runs/{run}"),
+            Some(READ),
+            Vec::new(),
+            401,
+            "unauthorized",
+            "admin token",
+        ),
+        case(
+            "upload truth with the enrollment token",
+            "PUT",
+            format!("/v1/runs/{run}/truth"),
+            Some(&enroll),
+            body(&json!({})),
+            401,
+            "unauthorized",
+            "admin token",
+        ),
+        case(
+            "re-run with a robot token",
+            "POST",
+            format!("/v1/runs/{run}/rerun"),
+            Some(&t1),
+            body(&json!({})),
+            401,
+            "unauthorized",
+            "admin token",
+        ),
+        case(
+            "read state without a token",
+            "GET",
+            format!("/v1/runs/{run}/state"),
+            None,
+            Vec::new(),
+            401,
+            "unauthorized",
+            "read token",
+        ),
+        case(
+            "read state with a robot token",
+            "GET",
+            format!("/v1/runs/{run}/state"),
+            Some(&t1),
+            Vec::new(),
+            401,
+            "unauthorized",
+            "read token",
+        ),
+        case(
+            "list runs without a token",
+            "GET",
+            "/v1/runs",
+            None,
+            Vec::new(),
+            401,
+            "unauthorized",
+            "read token",
+        ),
+        case(
+            "export with a wrong query token",
+            "GET",
+            format!("/v1/runs/{run}/export?access_token=nope"),
+            None,
+            Vec::new(),
+            401,
+            "unauthorized",
+            "read token",
+        ),
+        case(
+            "metrics without a token",
+            "GET",
+            "/metrics",
+            None,
+            Vec::new(),
+            401,
+            "unauthorized",
+            "read token",
+        ),
         // --- web pages of other origins, content types
-        case("create from a foreign web page", "POST", "/v1/runs", Some(ADMIN), run_body("x"), 403, "forbidden", "origin")
-            .header("origin", "http://evil.example"),
-        case("post from a rebound DNS name", "POST", &obs, Some(&t1), body(&rec(1)), 403, "forbidden", "origin")
-            .header("origin", "http://evil.example:8080"),
-        case("live websocket from a foreign page", "GET", format!("/v1/runs/{run}/live?access_token={READ}"), None, Vec::new(), 403, "forbidden", "origin")
-            .header("origin", "https://evil.example")
-            .header("connection", "upgrade")
-            .header("upgrade", "websocket")
-            .header("sec-websocket-version", "13")
-            .header("sec-websocket-key", "dGhlIHNhbXBsZSBub25jZQ=="),
-        case("create as text/plain", "POST", "/v1/runs", Some(ADMIN), run_body("x"), 415, "unsupported_media_type", "application/json")
-            .content_type(Some("text/plain")),
-        case("post as a form", "POST", &obs, Some(&t1), body(&rec(1)), 415, "unsupported_media_type", "application/json")
-            .content_type(Some("application/x-www-form-urlencoded")),
-        case("register without a content type", "POST", &robots, Some(ADMIN), body(&json!({"id": "9", "start": start})), 415, "unsupported_media_type", "Content-Type")
-            .content_type(None),
+        case(
+            "create from a foreign web page",
+            "POST",
+            "/v1/runs",
+            Some(ADMIN),
+            run_body("x"),
+            403,
+            "forbidden",
+            "origin",
+        )
+        .header("origin", "http://evil.example"),
+        case(
+            "post from a rebound DNS name",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&rec(1)),
+            403,
+            "forbidden",
+            "origin",
+        )
+        .header("origin", "http://evil.example:8080"),
+        case(
+            "live websocket from a foreign page",
+            "GET",
+            format!("/v1/runs/{run}/live?access_token={READ}"),
+            None,
+            Vec::new(),
+            403,
+            "forbidden",
+            "origin",
+        )
+        .header("origin", "https://evil.example")
+        .header("connection", "upgrade")
+        .header("upgrade", "websocket")
+        .header("sec-websocket-version", "13")
+        .header("sec-websocket-key", "dGhlIHNhbXBsZSBub25jZQ=="),
+        case(
+            "create as text/plain",
+            "POST",
+            "/v1/runs",
+            Some(ADMIN),
+            run_body("x"),
+            415,
+            "unsupported_media_type",
+            "application/json",
+        )
+        .content_type(Some("text/plain")),
+        case(
+            "post as a form",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&rec(1)),
+            415,
+            "unsupported_media_type",
+            "application/json",
+        )
+        .content_type(Some("application/x-www-form-urlencoded")),
+        case(
+            "register without a content type",
+            "POST",
+            &robots,
+            Some(ADMIN),
+            body(&json!({"id": "9", "start": start})),
+            415,
+            "unsupported_media_type",
+            "Content-Type",
+        )
+        .content_type(None),
         // --- bounded record fields
-        case("seq 2^63", "POST", &obs, Some(&t1), body(&with(1, "seq", json!(1u64 << 63))), 400, "bad_request", "seq"),
-        case("negative seq", "POST", &obs, Some(&t1), body(&with(1, "seq", json!(-1))), 400, "bad_request", "seq"),
-        case("t far in the future", "POST", &obs, Some(&t1), body(&with(1, "t", json!(1e11))), 409, "too_far_ahead", "max_future_s"),
-        case("t an hour and a bit ahead", "POST", &obs, Some(&t1), body(&with(1, "t", json!(good[0].t + 3601.0))), 409, "too_far_ahead", "max_future_s"),
-        case("t is a string", "POST", &obs, Some(&t1), body(&with(1, "t", json!("soon"))), 400, "bad_request", "t"),
-        case("t beyond any clock", "POST", &obs, Some(&t1), body(&with(1, "t", json!(1e300))), 400, "bad_request", "t"),
-        case("a motion of 1e9 s", "POST", &obs, Some(&t1), body(&with(1, "motion", json!({"velocity": [[0.1, 0.0, 1e9]]}))), 400, "bad_request", "max_motion_s"),
-        case("an Ackermann segment of 1e9 s", "POST", format!("/v1/runs/{ack_run}/observations"), Some(&ack_t), body(&with(1, "motion", json!({"ackermann": [[1.0, 0.1, 1e9]]}))), 400, "bad_request", "max_motion_s"),
-        case("10,001 motion segments", "POST", &obs, Some(&t1), body(&with(1, "motion", json!(vec![[0.0, 0.0, 0.001]; 10_001]).as_array().map(|a| json!({"velocity": a})).unwrap())), 400, "bad_request", "max_motion_segments"),
-        case("a negative duration", "POST", &obs, Some(&t1), body(&with(1, "motion", json!({"velocity": [[0.1, 0.0, -1.0]]}))), 400, "bad_request", "negative duration"),
-        case("the wrong motion model", "POST", &obs, Some(&t1), body(&with(1, "motion", json!({"odometry": [0.1, 0.0, 0.0]}))), 400, "bad_request", "motion model"),
-        case("101 landmark observations", "POST", &obs, Some(&t1), body(&many_landmarks), 400, "bad_request", "max_landmarks_per_record"),
-        case("200,000 landmark observations", "POST", &obs, Some(&t1), body(&huge_landmarks), 400, "bad_request", "max_landmarks_per_record"),
-        case("65 robot sightings", "POST", &obs, Some(&t1), body(&many_sightings), 400, "bad_request", "max_sightings_per_record"),
-        case("a robot sighting itself", "POST", &obs, Some(&t1), body(&with(1, "robots", json!([{"robot": "1", "z": [1.0, 0.0]}]))), 400, "bad_request", "itself"),
-        case("a landmark with one number", "POST", &obs, Some(&t1), body(&with(1, "landmarks", json!([{"z": [1.0]}]))), 400, "bad_request", "landmarks[0]"),
-        case("an unknown field", "POST", &obs, Some(&t1), body(&with(1, "colour", json!("red"))), 400, "bad_request", "colour"),
-        case("10,001 records in one request", "POST", &obs, Some(&t1), body(&json!(many_records)), 413, "too_large", "max_records_per_request"),
-        case("an empty array", "POST", &obs, Some(&t1), b"[]".to_vec(), 400, "bad_request", "no records"),
-        case("broken JSON", "POST", &obs, Some(&t1), b"{\"robot\": \"1\", \"seq\"".to_vec(), 400, "bad_request", "record"),
-        case("NDJSON with a broken line 2", "POST", &obs, Some(&t1), ndjson_bad.into_bytes(), 400, "bad_request", "line 2")
-            .content_type(Some("application/x-ndjson")),
-        case("a body over the limit", "POST", &obs, Some(&t1), vec![b' '; 9 << 20], 413, "too_large", "body_limit_bytes"),
+        case(
+            "seq 2^63",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&with(1, "seq", json!(1u64 << 63))),
+            400,
+            "bad_request",
+            "seq",
+        ),
+        case(
+            "negative seq",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&with(1, "seq", json!(-1))),
+            400,
+            "bad_request",
+            "seq",
+        ),
+        case(
+            "t far in the future",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&with(1, "t", json!(1e11)).tap_seq(5000)),
+            409,
+            "too_far_ahead",
+            "max_future_s",
+        ),
+        case(
+            "t an hour and a bit ahead",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&with(1, "t", json!(good[good.len() - 1].t + 3601.0)).tap_seq(5001)),
+            409,
+            "too_far_ahead",
+            "max_future_s",
+        ),
+        case(
+            "t is a string",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&with(1, "t", json!("soon"))),
+            400,
+            "bad_request",
+            "t",
+        ),
+        case(
+            "t beyond any clock",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&with(1, "t", json!(1e300))),
+            400,
+            "bad_request",
+            "t",
+        ),
+        case(
+            "a motion of 1e9 s",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&with(1, "motion", json!({"velocity": [[0.1, 0.0, 1e9]]}))),
+            400,
+            "bad_request",
+            "max_motion_s",
+        ),
+        case(
+            "an Ackermann segment of 1e9 s",
+            "POST",
+            format!("/v1/runs/{ack_run}/observations"),
+            Some(&ack_t),
+            body(&with(1, "motion", json!({"ackermann": [[1.0, 0.1, 1e9]]}))),
+            400,
+            "bad_request",
+            "max_motion_s",
+        ),
+        case(
+            "10,001 motion segments",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&with(
+                1,
+                "motion",
+                json!(vec![[0.0, 0.0, 0.001]; 10_001])
+                    .as_array()
+                    .map(|a| json!({"velocity": a}))
+                    .unwrap(),
+            )),
+            400,
+            "bad_request",
+            "max_motion_segments",
+        ),
+        case(
+            "a negative duration",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&with(1, "motion", json!({"velocity": [[0.1, 0.0, -1.0]]}))),
+            400,
+            "bad_request",
+            "negative duration",
+        ),
+        case(
+            "the wrong motion model",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&with(1, "motion", json!({"odometry": [0.1, 0.0, 0.0]}))),
+            400,
+            "bad_request",
+            "motion model",
+        ),
+        case(
+            "101 landmark observations",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&many_landmarks),
+            400,
+            "bad_request",
+            "max_landmarks_per_record",
+        ),
+        case(
+            "200,000 landmark observations",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&huge_landmarks),
+            400,
+            "bad_request",
+            "max_landmarks_per_record",
+        ),
+        case(
+            "65 robot sightings",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&many_sightings),
+            400,
+            "bad_request",
+            "max_sightings_per_record",
+        ),
+        case(
+            "a robot sighting itself",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&with(1, "robots", json!([{"robot": "1", "z": [1.0, 0.0]}]))),
+            400,
+            "bad_request",
+            "itself",
+        ),
+        case(
+            "a landmark with one number",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&with(1, "landmarks", json!([{"z": [1.0]}]))),
+            400,
+            "bad_request",
+            "landmarks[0]",
+        ),
+        case(
+            "an unknown field",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&with(1, "colour", json!("red"))),
+            400,
+            "bad_request",
+            "colour",
+        ),
+        case(
+            "10,001 records in one request",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&json!(many_records)),
+            413,
+            "too_large",
+            "max_records_per_request",
+        ),
+        case(
+            "an empty array",
+            "POST",
+            &obs,
+            Some(&t1),
+            b"[]".to_vec(),
+            400,
+            "bad_request",
+            "no records",
+        ),
+        case(
+            "broken JSON",
+            "POST",
+            &obs,
+            Some(&t1),
+            b"{\"robot\": \"1\", \"seq\"".to_vec(),
+            400,
+            "bad_request",
+            "record",
+        ),
+        case(
+            "NDJSON with a broken line 2",
+            "POST",
+            &obs,
+            Some(&t1),
+            ndjson_bad.into_bytes(),
+            400,
+            "bad_request",
+            "line 2",
+        )
+        .content_type(Some("application/x-ndjson")),
+        case(
+            "a body over the limit",
+            "POST",
+            &obs,
+            Some(&t1),
+            vec![b' '; 9 << 20],
+            413,
+            "too_large",
+            "body_limit_bytes",
+        ),
         // --- repeats
-        case("a stored seq with other content", "POST", &obs, Some(&t1), body(&changed), 409, "seq_conflict", "other content"),
+        case(
+            "a stored seq with other content",
+            "POST",
+            &obs,
+            Some(&t1),
+            body(&changed),
+            409,
+            "seq_conflict",
+            "other content",
+        ),
         // --- registration
-        case("a start covariance that is not PSD", "POST", &robots, Some(ADMIN), body(&json!({"id": "3", "start": bad_cov})), 400, "bad_request", "positive semi-definite"),
-        case("an asymmetric start covariance", "POST", &robots, Some(ADMIN), body(&json!({"id": "3", "start": asym_cov})), 400, "bad_request", "symmetric"),
-        case("t0 is a string", "POST", &robots, Some(ADMIN), body(&json!({"id": "3", "start": start, "t0": "now"})), 400, "bad_request", "t0"),
-        case("a robot id of 200 bytes", "POST", &robots, Some(ADMIN), body(&json!({"id": long_id, "start": start})), 400, "bad_request", "id"),
-        case("a robot id with a slash", "POST", &robots, Some(ADMIN), body(&json!({"id": "a/b", "start": start})), 400, "bad_request", "id"),
-        case("a robot id taken", "POST", &robots, Some(ADMIN), body(&json!({"id": "2", "start": start})), 409, "conflict", "already registered"),
-        case("a robot in an unknown run", "POST", "/v1/runs/nope/robots", Some(ADMIN), body(&json!({"id": "3", "start": start})), 404, "not_found", "no run"),
+        case(
+            "a start covariance that is not PSD",
+            "POST",
+            &robots,
+            Some(ADMIN),
+            body(&json!({"id": "3", "start": bad_cov})),
+            400,
+            "bad_request",
+            "positive semi-definite",
+        ),
+        case(
+            "an asymmetric start covariance",
+            "POST",
+            &robots,
+            Some(ADMIN),
+            body(&json!({"id": "3", "start": asym_cov})),
+            400,
+            "bad_request",
+            "symmetric",
+        ),
+        case(
+            "t0 is a string",
+            "POST",
+            &robots,
+            Some(ADMIN),
+            body(&json!({"id": "3", "start": start, "t0": "now"})),
+            400,
+            "bad_request",
+            "t0",
+        ),
+        case(
+            "a robot id of 200 bytes",
+            "POST",
+            &robots,
+            Some(ADMIN),
+            body(&json!({"id": long_id, "start": start})),
+            400,
+            "bad_request",
+            "id",
+        ),
+        case(
+            "a robot id with a slash",
+            "POST",
+            &robots,
+            Some(ADMIN),
+            body(&json!({"id": "a/b", "start": start})),
+            400,
+            "bad_request",
+            "id",
+        ),
+        case(
+            "a robot id taken",
+            "POST",
+            &robots,
+            Some(ADMIN),
+            body(&json!({"id": "2", "start": start})),
+            409,
+            "conflict",
+            "already registered",
+        ),
+        case(
+            "a robot in an unknown run",
+            "POST",
+            "/v1/runs/nope/robots",
+            Some(ADMIN),
+            body(&json!({"id": "3", "start": start})),
+            404,
+            "not_found",
+            "no run",
+        ),
         // --- runs
-        case("a run name of 200 bytes", "POST", "/v1/runs", Some(ADMIN), run_body(&long_id), 400, "bad_request", "name"),
-        case("a header with 4 robots over a bound of 3", "POST", "/v1/runs", Some(ADMIN), body(&json!({"header": {
+        case(
+            "a run name of 200 bytes",
+            "POST",
+            "/v1/runs",
+            Some(ADMIN),
+            run_body(&long_id),
+            400,
+            "bad_request",
+            "name",
+        ),
+        case(
+            "a header with 4 robots over a bound of 3",
+            "POST",
+            "/v1/runs",
+            Some(ADMIN),
+            body(&json!({"header": {
             "fleetslam_log": 1, "landmark_kind": "range_bearing_2d", "motion_model": "velocity",
-            "robots": [{"id": "a"}, {"id": "b"}, {"id": "c"}, {"id": "d"}]}})), 400, "bad_request", "max_robots_per_run"),
-        case("an unknown config field", "POST", "/v1/runs", Some(ADMIN), body(&json!({"header": header, "config": {"colour": 1}})), 400, "bad_request", "colour"),
+            "robots": [{"id": "a"}, {"id": "b"}, {"id": "c"}, {"id": "d"}]}})),
+            400,
+            "bad_request",
+            "max_robots_per_run",
+        ),
+        case(
+            "an unknown config field",
+            "POST",
+            "/v1/runs",
+            Some(ADMIN),
+            body(&json!({"header": header, "config": {"colour": 1}})),
+            400,
+            "bad_request",
+            "colour",
+        ),
         // --- queries, paths, methods
-        case("a bad query value", "GET", "/v1/runs?limit=many", Some(READ), Vec::new(), 400, "bad_request", "limit"),
-        case("an unknown query field", "GET", format!("/v1/runs/{run}/state?colour=1"), Some(READ), Vec::new(), 400, "bad_request", "colour"),
-        case("a non-finite scrub time", "GET", format!("/v1/runs/{run}/state?t=inf"), Some(READ), Vec::new(), 400, "bad_request", "finite"),
-        case("a path that is not UTF-8", "GET", "/v1/runs/%FF%FE/state", Some(READ), Vec::new(), 400, "bad_request", "UTF-8"),
-        case("an unknown method", "FROBNICATE", "/v1/runs", Some(ADMIN), Vec::new(), 405, "method_not_allowed", "/v1/runs"),
-        case("an unknown API path", "GET", "/v1/nothing", Some(READ), Vec::new(), 404, "not_found", "/v1/nothing"),
+        case(
+            "a bad query value",
+            "GET",
+            "/v1/runs?limit=many",
+            Some(READ),
+            Vec::new(),
+            400,
+            "bad_request",
+            "limit",
+        ),
+        case(
+            "an unknown query field",
+            "GET",
+            format!("/v1/runs/{run}/state?colour=1"),
+            Some(READ),
+            Vec::new(),
+            400,
+            "bad_request",
+            "colour",
+        ),
+        case(
+            "a non-finite scrub time",
+            "GET",
+            format!("/v1/runs/{run}/state?t=inf"),
+            Some(READ),
+            Vec::new(),
+            400,
+            "bad_request",
+            "finite",
+        ),
+        case(
+            "a path that is not UTF-8",
+            "GET",
+            "/v1/runs/%FF%FE/state",
+            Some(READ),
+            Vec::new(),
+            400,
+            "bad_request",
+            "UTF-8",
+        ),
+        case(
+            "an unknown method",
+            "FROBNICATE",
+            "/v1/runs",
+            Some(ADMIN),
+            Vec::new(),
+            405,
+            "method_not_allowed",
+            "/v1/runs",
+        ),
+        case(
+            "an unknown API path",
+            "GET",
+            "/v1/nothing",
+            Some(READ),
+            Vec::new(),
+            404,
+            "not_found",
+            "/v1/nothing",
+        ),
     ];
     assert!(cases.len() >= 40, "{} cases", cases.len());
+    eprintln!("{} hostile cases", cases.len());
 
     let mut failures = Vec::new();
     for c in &cases {
@@ -431,7 +1071,12 @@ async fn hostile_inputs_are_refused_clearly_and_change_nothing() {
     assert_eq!(a.body["acks"][0]["status"], "duplicate", "{:?}", a.body);
     srv.register(&run, ADMIN, "3", &log).await;
     let a = srv
-        .json("POST", &robots, Some(ADMIN), json!({"id": "4", "start": start}))
+        .json(
+            "POST",
+            &robots,
+            Some(ADMIN),
+            json!({"id": "4", "start": start}),
+        )
         .await;
     assert_eq!(a.status, StatusCode::CONFLICT, "{:?}", a.body);
     assert!(a.message.contains("max_robots_per_run"), "{}", a.message);
@@ -444,18 +1089,45 @@ async fn hostile_inputs_are_refused_clearly_and_change_nothing() {
     assert!(a.message.contains("max_active_runs"), "{}", a.message);
     // Tokens: lower-case scheme, the read token in the query for a browser's websocket.
     let a = srv
-        .send("GET", "/v1/runs", None, None, &[("authorization", &format!("bearer {READ}"))], Vec::new())
+        .send(
+            "GET",
+            "/v1/runs",
+            None,
+            None,
+            &[("authorization", &format!("bearer {READ}"))],
+            Vec::new(),
+        )
         .await;
     assert_eq!(a.status, StatusCode::OK, "{:?}", a.body);
     let a = srv
-        .send("GET", &format!("/v1/runs/{run}/timeline?access_token={READ}"), None, None, &[], Vec::new())
+        .send(
+            "GET",
+            &format!("/v1/runs/{run}/timeline?access_token={READ}"),
+            None,
+            None,
+            &[],
+            Vec::new(),
+        )
         .await;
     assert_eq!(a.status, StatusCode::OK, "{:?}", a.body);
     // The seq conflict is counted in the robot's status; unknown methods share one label.
     let a = srv
-        .send("GET", &format!("/v1/runs/{run}/state"), Some(READ), None, &[], Vec::new())
+        .send(
+            "GET",
+            &format!("/v1/runs/{run}/state"),
+            Some(READ),
+            None,
+            &[],
+            Vec::new(),
+        )
         .await;
-    let r1 = a.body["robots"].as_array().unwrap().iter().find(|r| r["id"] == "1").unwrap().clone();
+    let r1 = a.body["robots"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|r| r["id"] == "1")
+        .unwrap()
+        .clone();
     assert_eq!(r1["seq_conflicts"], 1, "{r1}");
     let metrics = srv
         .client
@@ -471,10 +1143,24 @@ async fn hostile_inputs_are_refused_clearly_and_change_nothing() {
     assert!(metrics.contains("method=\"other\""), "{metrics}");
 
     // Every good record was applied: robot 1's trajectory has its start and each record.
-    let a = srv.json("POST", &format!("/v1/runs/{run}/end"), Some(ADMIN), json!({})).await;
+    let a = srv
+        .json(
+            "POST",
+            &format!("/v1/runs/{run}/end"),
+            Some(ADMIN),
+            json!({}),
+        )
+        .await;
     assert_eq!(a.status, StatusCode::NO_CONTENT, "{:?}", a.body);
     let a = srv
-        .send("GET", &format!("/v1/runs/{run}/trajectories"), Some(READ), None, &[], Vec::new())
+        .send(
+            "GET",
+            &format!("/v1/runs/{run}/trajectories"),
+            Some(READ),
+            None,
+            &[],
+            Vec::new(),
+        )
         .await;
     assert_eq!(
         a.body["robots"]["1"].as_array().map(Vec::len),
@@ -524,7 +1210,15 @@ fn mutate(rng: &mut rand_chacha::ChaCha8Rng, good: &Value, seq: u64) -> (Vec<u8>
         json!("9".repeat(400)),
     ];
     let pick = |rng: &mut rand_chacha::ChaCha8Rng| wild[rng.random_range(0..wild.len())].clone();
-    let fields = ["robot", "seq", "t", "motion", "landmarks", "robots", "extra"];
+    let fields = [
+        "robot",
+        "seq",
+        "t",
+        "motion",
+        "landmarks",
+        "robots",
+        "extra",
+    ];
     match rng.random_range(0..12) {
         0..=3 => {
             let f = fields[rng.random_range(0..fields.len())];
@@ -539,11 +1233,19 @@ fn mutate(rng: &mut rand_chacha::ChaCha8Rng, good: &Value, seq: u64) -> (Vec<u8>
         5 => {
             let n = rng.random_range(0..5);
             let m = json!({"velocity": [[pick(rng), pick(rng), pick(rng)]]});
-            r["motion"] = if n == 0 { json!({"ackermann": [[1.0, 0.1, 1.0]]}) } else { m };
+            r["motion"] = if n == 0 {
+                json!({"ackermann": [[1.0, 0.1, 1.0]]})
+            } else {
+                m
+            };
         }
         6 => {
             let n = rng.random_range(0..300);
-            r["landmarks"] = json!((0..n).map(|_| json!({"id": pick(rng), "z": pick(rng)})).collect::<Vec<_>>());
+            r["landmarks"] = json!(
+                (0..n)
+                    .map(|_| json!({"id": pick(rng), "z": pick(rng)}))
+                    .collect::<Vec<_>>()
+            );
         }
         7 => {
             r["robots"] = json!([{"robot": pick(rng), "z": pick(rng)}]);
@@ -564,7 +1266,12 @@ fn mutate(rng: &mut rand_chacha::ChaCha8Rng, good: &Value, seq: u64) -> (Vec<u8>
             return ((0..n).map(|_| rng.random()).collect(), "application/json");
         }
         10 => {
-            let cts = ["application/x-ndjson", "text/plain", "application/json; charset=latin1", ""];
+            let cts = [
+                "application/x-ndjson",
+                "text/plain",
+                "application/json; charset=latin1",
+                "",
+            ];
             let ct = cts[rng.random_range(0..cts.len())];
             let b = format!("{}\n{}\n", r, pick(rng));
             return (b.into_bytes(), ct);
@@ -602,13 +1309,24 @@ async fn fuzzed_records_and_bodies_never_break_the_server() {
         .collect();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2026);
     let requests = 10_000;
-    let (mut server_errors, mut dropped, mut next1, mut statuses) =
-        (0, 0, 0usize, std::collections::BTreeMap::<u16, usize>::new());
+    let (mut server_errors, mut dropped, mut next1, mut statuses) = (
+        0,
+        0,
+        0usize,
+        std::collections::BTreeMap::<u16, usize>::new(),
+    );
     for i in 0..requests {
         // Robot 1 posts its good records in between; robot 2 is the fuzzer.
         if i % 20 == 0 && next1 < good1.len() {
-            let a = srv.json("POST", &obs, Some(&t1), good1[next1].clone()).await;
-            assert_eq!(a.status, StatusCode::OK, "good record {next1}: {:?}", a.body);
+            let a = srv
+                .json("POST", &obs, Some(&t1), good1[next1].clone())
+                .await;
+            assert_eq!(
+                a.status,
+                StatusCode::OK,
+                "good record {next1}: {:?}",
+                a.body
+            );
             next1 += 1;
         }
         let base = &good2[rng.random_range(0..good2.len())];
@@ -653,15 +1371,34 @@ async fn fuzzed_records_and_bodies_never_break_the_server() {
     }
     // The rest of robot 1's good records, then the end: each was applied.
     while next1 < good1.len() {
-        let a = srv.json("POST", &obs, Some(&t1), good1[next1].clone()).await;
+        let a = srv
+            .json("POST", &obs, Some(&t1), good1[next1].clone())
+            .await;
         assert_eq!(a.status, StatusCode::OK, "{:?}", a.body);
         next1 += 1;
     }
-    let a = srv.json("POST", &format!("/v1/runs/{run}/end"), Some(ADMIN), json!({})).await;
+    let a = srv
+        .json(
+            "POST",
+            &format!("/v1/runs/{run}/end"),
+            Some(ADMIN),
+            json!({}),
+        )
+        .await;
     assert_eq!(a.status, StatusCode::NO_CONTENT, "{:?}", a.body);
     let a = srv
-        .send("GET", &format!("/v1/runs/{run}/trajectories"), None, None, &[], Vec::new())
+        .send(
+            "GET",
+            &format!("/v1/runs/{run}/trajectories"),
+            None,
+            None,
+            &[],
+            Vec::new(),
+        )
         .await;
-    assert_eq!(a.body["robots"]["1"].as_array().map(Vec::len), Some(good1.len() + 1));
+    assert_eq!(
+        a.body["robots"]["1"].as_array().map(Vec::len),
+        Some(good1.len() + 1)
+    );
     srv.running.stop().await.unwrap();
 }

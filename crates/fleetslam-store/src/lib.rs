@@ -103,6 +103,7 @@ struct RawRun {
     summary: Option<String>,
     created_at: i64,
     ended_at: Option<i64>,
+    reason: Option<String>,
     robots: i64,
     records: i64,
 }
@@ -118,6 +119,7 @@ impl RawRun {
             summary: parse_opt(self.summary.as_deref())?,
             created_at: self.created_at,
             ended_at: self.ended_at,
+            reason: self.reason,
             robots: self.robots,
             records: self.records,
         })
@@ -162,6 +164,20 @@ struct RawObservation {
     seq: i64,
     t: f64,
     body: String,
+    rejected: Option<String>,
+}
+
+impl From<RawObservation> for StoredObservation {
+    fn from(r: RawObservation) -> Self {
+        StoredObservation {
+            arrival: r.arrival,
+            robot_id: r.robot_id,
+            seq: r.seq,
+            t: r.t,
+            body: r.body,
+            rejected: r.rejected,
+        }
+    }
 }
 
 #[derive(FromRow)]
@@ -185,7 +201,7 @@ struct RawModelInfo {
 }
 
 /// The columns of a [`RunRow`], counts included; `r` is `runs`.
-const RUN_COLUMNS: &str = "r.id, r.name, r.status, r.config, r.header, r.summary, r.created_at, r.ended_at, \
+const RUN_COLUMNS: &str = "r.id, r.name, r.status, r.config, r.header, r.summary, r.created_at, r.ended_at, r.reason, \
      (SELECT COUNT(*) FROM robots b WHERE b.run_id = r.id) AS robots, \
      (SELECT COALESCE(MAX(o.arrival), 0) FROM observations o WHERE o.run_id = r.id) AS records";
 
@@ -358,6 +374,7 @@ impl Store {
             summary: None,
             created_at,
             ended_at: None,
+            reason: None,
             robots: 0,
             records: 0,
         })
@@ -441,6 +458,27 @@ impl Store {
                 q = q.bind(now);
             }
             q.execute(pool).await?.rows_affected()
+        });
+        if updated == 0 {
+            return Err(StoreError::NotFound(format!("run {id}")));
+        }
+        Ok(())
+    }
+
+    /// Marks a run `"failed"` with the reason (its coordinator or its recovery failed):
+    /// it is no longer recovered on start, and its reason is shown with it.
+    pub async fn set_run_failed(&self, id: &str, reason: &str) -> Result<(), StoreError> {
+        let sql = "UPDATE runs SET status = $2, reason = $3, ended_at = COALESCE(ended_at, $4) \
+                   WHERE id = $1";
+        let updated = with_pool!(&self.inner.pool, pool => {
+            sqlx::query(sql)
+                .bind(id)
+                .bind(STATUS_FAILED)
+                .bind(reason)
+                .bind(now_ms())
+                .execute(pool)
+                .await?
+                .rows_affected()
         });
         if updated == 0 {
             return Err(StoreError::NotFound(format!("run {id}")));
@@ -576,7 +614,7 @@ impl Store {
                 "page limit {limit} must be in 1..={MAX_RECORDS_PAGE}"
             )));
         }
-        let sql = "SELECT arrival, robot_id, seq, t, body FROM observations \
+        let sql = "SELECT arrival, robot_id, seq, t, body, rejected FROM observations \
                    WHERE run_id = $1 AND arrival > $2 ORDER BY arrival LIMIT $3";
         let raws = with_pool!(&self.inner.pool, pool => {
             sqlx::query_as::<_, RawObservation>(sql)
@@ -586,16 +624,75 @@ impl Store {
                 .fetch_all(pool)
                 .await?
         });
-        Ok(raws
-            .into_iter()
-            .map(|r| StoredObservation {
-                arrival: r.arrival,
-                robot_id: r.robot_id,
-                seq: r.seq,
-                t: r.t,
-                body: r.body,
-            })
-            .collect())
+        Ok(raws.into_iter().map(StoredObservation::from).collect())
+    }
+
+    /// Up to `limit` (1..=[`MAX_RECORDS_PAGE`]) records with a time in `from_t..=until_t`
+    /// and an arrival number greater than `after_arrival`, in arrival order (page on with
+    /// the last arrival returned). Served by the index on `(run_id, t)`: reading the records
+    /// after a snapshot costs those records, not the whole log.
+    pub async fn records_in_time(
+        &self,
+        run_id: &str,
+        from_t: f64,
+        until_t: f64,
+        after_arrival: i64,
+        limit: i64,
+    ) -> Result<Vec<StoredObservation>, StoreError> {
+        if !(1..=MAX_RECORDS_PAGE).contains(&limit) {
+            return Err(StoreError::Invalid(format!(
+                "page limit {limit} must be in 1..={MAX_RECORDS_PAGE}"
+            )));
+        }
+        if from_t.is_nan() || until_t.is_nan() {
+            return Err(StoreError::Invalid("a time bound is NaN".into()));
+        }
+        // The store keeps finite times only; clamping keeps infinite bounds portable.
+        let (from_t, until_t) = (from_t.max(f64::MIN), until_t.min(f64::MAX));
+        let sql = "SELECT arrival, robot_id, seq, t, body, rejected FROM observations \
+                   WHERE run_id = $1 AND t >= $2 AND t <= $3 AND arrival > $4 \
+                   ORDER BY arrival LIMIT $5";
+        let raws = with_pool!(&self.inner.pool, pool => {
+            sqlx::query_as::<_, RawObservation>(sql)
+                .bind(run_id)
+                .bind(from_t)
+                .bind(until_t)
+                .bind(after_arrival)
+                .bind(limit)
+                .fetch_all(pool)
+                .await?
+        });
+        Ok(raws.into_iter().map(StoredObservation::from).collect())
+    }
+
+    /// Quarantines the stored record `(run, robot, seq)`: it stays in the log (its seq stays
+    /// taken) but is marked rejected with `reason`, and recovery, scrubbing, re-runs and
+    /// exports skip it. Marking it again keeps the first reason. False when no such record.
+    pub async fn quarantine(
+        &self,
+        run_id: &str,
+        robot_id: &str,
+        seq: i64,
+        reason: &str,
+    ) -> Result<bool, StoreError> {
+        let reason = if reason.is_empty() {
+            "rejected"
+        } else {
+            reason
+        };
+        let sql = "UPDATE observations SET rejected = COALESCE(rejected, $4) \
+                   WHERE run_id = $1 AND robot_id = $2 AND seq = $3";
+        let n = with_pool!(&self.inner.pool, pool => {
+            sqlx::query(sql)
+                .bind(run_id)
+                .bind(robot_id)
+                .bind(seq)
+                .bind(reason)
+                .execute(pool)
+                .await?
+                .rows_affected()
+        });
+        Ok(n > 0)
     }
 
     /// The stored body of record `seq` of `robot` in a run, if any: what a repeated seq is
@@ -727,6 +824,66 @@ impl Store {
             sqlx::query_as::<_, RawSnapshot>(&sql).bind(run_id).bind(applied).fetch_optional(pool).await?
         });
         Ok(raw.map(SnapshotRow::from))
+    }
+
+    /// Stores pieces of a run's trajectories in one transaction, each replacing a piece of
+    /// the same robot starting at the same index.
+    pub async fn put_trajectory_chunks(
+        &self,
+        run_id: &str,
+        chunks: &[TrajectoryChunk],
+    ) -> Result<(), StoreError> {
+        if chunks.is_empty() {
+            return Ok(());
+        }
+        if let Some(c) = chunks.iter().find(|c| c.first < 0 || c.robot_id.is_empty()) {
+            return Err(StoreError::Invalid(format!(
+                "trajectory piece of robot {:?} at {}: empty robot id or negative index",
+                c.robot_id, c.first
+            )));
+        }
+        let sql = "INSERT INTO trajectory_chunks (run_id, robot_id, first_index, points) VALUES ($1, $2, $3, $4) \
+                   ON CONFLICT (run_id, robot_id, first_index) DO UPDATE SET points = excluded.points";
+        with_pool!(&self.inner.pool, pool => {
+            let mut tx = pool.begin().await?;
+            for c in chunks {
+                sqlx::query(sql)
+                    .bind(run_id)
+                    .bind(&c.robot_id)
+                    .bind(c.first)
+                    .bind(&c.points)
+                    .execute(&mut *tx)
+                    .await
+                    .map_err(|e| StoreError::from_db(e, || format!("trajectory pieces of run {run_id}")))?;
+            }
+            tx.commit().await?;
+        });
+        Ok(())
+    }
+
+    /// Every stored piece of a run's trajectories, by robot, then by first index.
+    pub async fn trajectory_chunks(
+        &self,
+        run_id: &str,
+    ) -> Result<Vec<TrajectoryChunk>, StoreError> {
+        let sql = "SELECT robot_id, first_index, points FROM trajectory_chunks WHERE run_id = $1 \
+                   ORDER BY robot_id, first_index";
+        let rows = with_pool!(&self.inner.pool, pool => {
+            sqlx::query(sql)
+                .bind(run_id)
+                .fetch_all(pool)
+                .await?
+                .into_iter()
+                .map(|row| {
+                    Ok(TrajectoryChunk {
+                        robot_id: row.try_get("robot_id")?,
+                        first: row.try_get("first_index")?,
+                        points: row.try_get("points")?,
+                    })
+                })
+                .collect::<Result<Vec<_>, sqlx::Error>>()?
+        });
+        Ok(rows)
     }
 
     // ---------------------------------------------------------------- artifacts

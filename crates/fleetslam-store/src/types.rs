@@ -44,6 +44,9 @@ pub struct RunRow {
     pub created_at: i64,
     /// When it ended or failed, unix milliseconds.
     pub ended_at: Option<i64>,
+    /// Why it failed (status `"failed"`), when known.
+    #[serde(default)]
+    pub reason: Option<String>,
     /// How many robots it has.
     pub robots: i64,
     /// How many observation records it holds (also its highest arrival number).
@@ -170,6 +173,11 @@ pub struct StoredObservation {
     pub t: f64,
     /// The record's JSON text, as appended.
     pub body: String,
+    /// Why it was quarantined ([`Store::quarantine`](crate::Store::quarantine)): the
+    /// filter failed or panicked on it, or its body cannot be parsed. `None` for a record in
+    /// good standing.
+    #[serde(default)]
+    pub rejected: Option<String>,
 }
 
 /// A filter snapshot to store.
@@ -197,6 +205,18 @@ pub struct SnapshotRow {
     pub data: Vec<u8>,
     /// When it was stored, unix milliseconds.
     pub created_at: i64,
+}
+
+/// A piece of a robot's trajectory, stored with a snapshot
+/// ([`Store::put_trajectory_chunks`](crate::Store::put_trajectory_chunks)).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrajectoryChunk {
+    /// The robot whose trajectory it is.
+    pub robot_id: String,
+    /// The index of its first point in the robot's trajectory.
+    pub first: i64,
+    /// The points, as the caller encoded them (JSON text), stored as given.
+    pub points: String,
 }
 
 /// A learned model to store.

@@ -160,6 +160,7 @@ impl Writer {
                 "training_rows",
                 "evaluations",
                 "snapshots",
+                "trajectory_chunks",
                 "observations",
                 "robots",
             ] {

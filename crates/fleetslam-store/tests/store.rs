@@ -111,6 +111,9 @@ suite!(
     delete_run_removes_everything,
     evaluations_training_and_models,
     artifacts_and_snapshot_index,
+    quarantine_marks_records_and_keeps_their_seq,
+    records_in_time_reads_only_the_window,
+    failed_runs_keep_their_reason,
 );
 
 fn new_run(id: &str) -> NewRun {
@@ -954,4 +957,190 @@ fn database_urls_are_rewritten() {
         fleetslam_store::admin::with_database("postgres://h", "x"),
         "postgres://h/x"
     );
+}
+
+async fn quarantine_marks_records_and_keeps_their_seq(store: &Store) {
+    store.create_run(&new_run("q")).await.expect("create");
+    store
+        .append("q", (0..5).map(|s| obs("1", s)).collect())
+        .await
+        .expect("append");
+    // New records are in good standing.
+    let all = store.records_after("q", 0, 100).await.expect("read");
+    assert!(all.iter().all(|r| r.rejected.is_none()), "{all:?}");
+
+    assert!(
+        store
+            .quarantine("q", "1", 2, "step panicked: boom")
+            .await
+            .expect("quarantine")
+    );
+    // Marking again keeps the first reason; an unknown record is reported.
+    assert!(store.quarantine("q", "1", 2, "other").await.expect("again"));
+    assert!(!store.quarantine("q", "1", 99, "x").await.expect("missing"));
+    assert!(
+        !store
+            .quarantine("other", "1", 2, "x")
+            .await
+            .expect("no run")
+    );
+
+    let all = store.records_after("q", 0, 100).await.expect("read");
+    let marked: Vec<(i64, Option<&str>)> =
+        all.iter().map(|r| (r.seq, r.rejected.as_deref())).collect();
+    assert_eq!(
+        marked,
+        [
+            (0, None),
+            (1, None),
+            (2, Some("step panicked: boom")),
+            (3, None),
+            (4, None)
+        ]
+    );
+    // Its seq stays taken: posting it again is a duplicate, nothing new is stored.
+    let again = store.append("q", vec![obs("1", 2)]).await.expect("repeat");
+    assert!(again.items[0].duplicate);
+    assert_eq!(again.items[0].arrival, 3);
+    assert_eq!(store.record_count("q").await.expect("count"), 5);
+    // The time window reads it with its mark too.
+    let window = store
+        .records_in_time("q", 100.2, 100.2, 0, 10)
+        .await
+        .expect("window");
+    assert_eq!(window.len(), 1);
+    assert_eq!(window[0].rejected.as_deref(), Some("step panicked: boom"));
+    // Deleting the run removes it with the rest.
+    assert!(store.delete_run("q").await.expect("delete"));
+    assert!(
+        store
+            .records_after("q", 0, 100)
+            .await
+            .expect("gone")
+            .is_empty()
+    );
+}
+
+async fn records_in_time_reads_only_the_window(store: &Store) {
+    store.create_run(&new_run("w")).await.expect("create");
+    store.create_run(&new_run("w2")).await.expect("create");
+    // Robot 1 at t = 100.0, 100.1, ... 101.9; robot 2 arrives later with earlier times.
+    store
+        .append("w", (0..20).map(|s| obs("1", s)).collect())
+        .await
+        .expect("append 1");
+    store
+        .append("w", (0..10).map(|s| obs("2", s)).collect())
+        .await
+        .expect("append 2");
+    store
+        .append("w2", (0..20).map(|s| obs("1", s)).collect())
+        .await
+        .expect("other run");
+    let key = |v: &[fleetslam_store::StoredObservation]| -> Vec<(String, i64, i64)> {
+        v.iter()
+            .map(|r| (r.robot_id.clone(), r.seq, r.arrival))
+            .collect()
+    };
+    // Inclusive bounds, arrival order, this run only.
+    let got = store
+        .records_in_time("w", 100.45, 100.75, 0, 100)
+        .await
+        .expect("window");
+    assert_eq!(
+        key(&got),
+        [
+            ("1".to_owned(), 5, 6),
+            ("1".to_owned(), 6, 7),
+            ("1".to_owned(), 7, 8),
+            ("2".to_owned(), 5, 26),
+            ("2".to_owned(), 6, 27),
+            ("2".to_owned(), 7, 28),
+        ]
+    );
+    let exact = store
+        .records_in_time("w", 100.0 + 3.0 * 0.1, 100.0 + 3.0 * 0.1, 0, 100)
+        .await
+        .expect("exact");
+    assert_eq!(exact.len(), 2, "both bounds are inclusive: {exact:?}");
+    assert!(exact.iter().all(|r| r.t == 100.0 + 3.0 * 0.1));
+    // Paging by arrival.
+    let mut paged = Vec::new();
+    let mut after = 0;
+    loop {
+        let page = store
+            .records_in_time("w", 100.45, 100.75, after, 4)
+            .await
+            .expect("page");
+        let Some(last) = page.last() else { break };
+        after = last.arrival;
+        paged.extend(page);
+    }
+    assert_eq!(key(&paged), key(&got));
+    // Open bounds read everything, in arrival order; an empty window reads nothing.
+    let all = store
+        .records_in_time("w", f64::NEG_INFINITY, f64::INFINITY, 0, 1000)
+        .await
+        .expect("all");
+    assert_eq!(all.len(), 30);
+    assert!(all.windows(2).all(|w| w[0].arrival < w[1].arrival));
+    assert_eq!(all[29].body, obs("2", 9).body);
+    assert!(
+        store
+            .records_in_time("w", 200.0, 300.0, 0, 100)
+            .await
+            .expect("empty")
+            .is_empty()
+    );
+    assert!(matches!(
+        store.records_in_time("w", 0.0, 1.0, 0, 0).await,
+        Err(StoreError::Invalid(_))
+    ));
+    assert!(matches!(
+        store.records_in_time("w", f64::NAN, 1.0, 0, 10).await,
+        Err(StoreError::Invalid(_))
+    ));
+}
+
+async fn failed_runs_keep_their_reason(store: &Store) {
+    store.create_run(&new_run("f")).await.expect("create");
+    store.create_run(&new_run("ok")).await.expect("create");
+    assert_eq!(
+        store.get_run("f").await.expect("get").expect("run").reason,
+        None
+    );
+    store
+        .set_run_failed("f", "recovery failed: bad start pose")
+        .await
+        .expect("fail");
+    let row = store.get_run("f").await.expect("get").expect("run");
+    assert_eq!(row.status, "failed");
+    assert_eq!(
+        row.reason.as_deref(),
+        Some("recovery failed: bad start pose")
+    );
+    assert!(row.ended_at.is_some());
+    // Listed with its reason, and no longer recovered on start.
+    let listed = store
+        .list_runs(&RunFilter {
+            status: Some("failed".into()),
+            ..RunFilter::default()
+        })
+        .await
+        .expect("list");
+    assert_eq!(listed.len(), 1);
+    assert_eq!(listed[0].reason, row.reason);
+    let active: Vec<String> = store
+        .active_runs()
+        .await
+        .expect("active")
+        .into_iter()
+        .map(|r| r.id)
+        .collect();
+    assert_eq!(active, ["ok"]);
+    assert!(matches!(
+        store.set_run_failed("missing", "x").await,
+        Err(StoreError::NotFound(_))
+    ));
+    assert!(store.delete_run("f").await.expect("delete"));
 }

@@ -1,0 +1,334 @@
+//! Readers never slow writers (issue 11): the state, trajectories, timeline and export of a
+//! live run answer while its coordinator is stuck in a filter step with a full queue (they
+//! never go through its queue), and websocket connections are bounded per run and in total
+//! with a JSON 503 before the upgrade.
+
+use axum::http::StatusCode;
+use fleetslam_core::config::FilterConfig;
+use fleetslam_core::ekf::EkfUpdater;
+use fleetslam_core::filter::FastSlam;
+use fleetslam_core::pose::Pose2;
+use fleetslam_core::updater::{LandmarkGaussian, LandmarkUpdater, UpdateInput, UpdateOutput};
+use fleetslam_server::app::{ApiConfig, AppState, app};
+use fleetslam_store::{NewRun, Store};
+use serde_json::{Value, json};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::Duration;
+
+mod common;
+use common::{Harness, sim_log};
+
+/// The EKF behind a gate: every landmark update waits until the test opens it, so the
+/// coordinator is stuck in a step for as long as the test wants.
+#[derive(Debug)]
+struct Gated {
+    inner: EkfUpdater,
+    open: Arc<(Mutex<bool>, Condvar)>,
+}
+
+impl Gated {
+    fn wait(&self) {
+        let (lock, cv) = &*self.open;
+        let mut open = lock.lock().unwrap();
+        while !*open {
+            open = cv.wait(open).unwrap();
+        }
+    }
+}
+
+impl LandmarkUpdater for Gated {
+    fn name(&self) -> &str {
+        self.inner.name()
+    }
+    fn kind(&self) -> fleetslam_core::sensor::LandmarkKind {
+        self.inner.kind()
+    }
+    fn initialize(&self, pose: &Pose2, z: &[f64; 3]) -> LandmarkGaussian {
+        self.wait();
+        self.inner.initialize(pose, z)
+    }
+    fn update_batch(&self, inputs: &[UpdateInput], outputs: &mut [UpdateOutput]) {
+        self.wait();
+        self.inner.update_batch(inputs, outputs)
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn reads_answer_while_the_coordinator_is_stuck_with_a_full_queue() {
+    let log = sim_log(1, 10.0);
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::open_default(dir.path()).await.unwrap();
+    let mut api = ApiConfig::default();
+    api.coordinator.queue_capacity = 1;
+    let state = AppState::new(store.clone(), api);
+    let h = Harness {
+        router: app(state.clone()),
+        store: store.clone(),
+        dir: tempfile::tempdir().unwrap(),
+    };
+    let mut cfg = FilterConfig::from_header(&log.header);
+    cfg.particles = 20;
+    cfg.seed = 1;
+    store
+        .create_run(&NewRun {
+            id: "busy".into(),
+            name: None,
+            config: serde_json::to_value(&cfg).unwrap(),
+            header: Some(serde_json::to_value(&log.header).unwrap()),
+        })
+        .await
+        .unwrap();
+    let gate = Arc::new((Mutex::new(false), Condvar::new()));
+    let updater = Arc::new(Gated {
+        inner: EkfUpdater::new(cfg.landmark_kind, &cfg.sensor_noise),
+        open: gate.clone(),
+    });
+    let slam = FastSlam::with_updater(cfg.clone(), updater).unwrap();
+    let filter = fleetslam_localize::LateJoinSlam::from_slam(slam, Default::default()).unwrap();
+    state.start_run("busy", filter).await.unwrap();
+    let robot = &log.header.robots[0];
+    let (s, v) = h
+        .json(
+            "POST",
+            "/v1/runs/busy/robots",
+            None,
+            json!({"id": robot.id, "start": robot.start, "t0": robot.t0}),
+        )
+        .await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let token = v["token"].as_str().unwrap().to_string();
+
+    // The first record that observes a landmark gets the coordinator stuck in its step.
+    let k = log
+        .records
+        .iter()
+        .position(|r| !r.landmarks.is_empty())
+        .unwrap();
+    let post = |recs: Vec<fleetslam_core::log::Record>| {
+        let (router, token) = (h.router.clone(), token.clone());
+        tokio::spawn(async move { post_records(router, &token, &recs).await })
+    };
+    let first = post(log.records[..=k].to_vec()).await.unwrap();
+    assert_eq!(first.0, StatusCode::OK, "{}", first.1);
+    // Then one request per record until the queue is full: the coordinator takes none of
+    // them while it is stuck (one waits in the queue, the next gets 503).
+    let mut waiting = Vec::new();
+    let mut full = None;
+    for j in k + 1..(k + 12).min(log.records.len()) {
+        let task = post(vec![log.records[j].clone()]);
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        if task.is_finished() {
+            let (s, v) = task.await.unwrap();
+            if s == StatusCode::SERVICE_UNAVAILABLE {
+                full = Some(v);
+                break;
+            }
+            assert_eq!(s, StatusCode::OK, "{v}");
+        } else {
+            waiting.push(task);
+        }
+    }
+    let full = full.expect("the queue filled up while the coordinator was stuck");
+    assert_eq!(full["error"], "busy", "{full}");
+    assert!(!waiting.is_empty());
+
+    // Every read of the live run answers now, promptly.
+    let quick = Duration::from_secs(5);
+    for uri in [
+        "/v1/runs/busy/state",
+        "/v1/runs/busy/trajectories",
+        "/v1/runs/busy/timeline",
+        "/v1/runs/busy",
+        "/v1/runs",
+    ] {
+        let (s, v) = tokio::time::timeout(quick, h.get(uri))
+            .await
+            .unwrap_or_else(|_| panic!("{uri} waited for the busy coordinator"));
+        assert_eq!(s, StatusCode::OK, "{uri}: {v}");
+    }
+    let (s, st) = h.get("/v1/runs/busy/state").await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(st["status"], "active");
+    let (s, traj) = h.get("/v1/runs/busy/trajectories").await;
+    assert_eq!(s, StatusCode::OK);
+    assert!(
+        traj["robots"][robot.id.as_str()]
+            .as_array()
+            .is_some_and(|p| !p.is_empty()),
+        "the start pose at least: {traj}"
+    );
+    let (s, zip) = tokio::time::timeout(quick, h.raw("GET", "/v1/runs/busy/export"))
+        .await
+        .expect("export waited for the busy coordinator");
+    assert_eq!(s, StatusCode::OK);
+    assert!(zip.starts_with(b"PK"));
+
+    // Open the gate: the waiting requests are answered and every record is applied.
+    {
+        let (lock, cv) = &*gate;
+        *lock.lock().unwrap() = true;
+        cv.notify_all();
+    }
+    let mut posted = k + 1;
+    for task in waiting {
+        let (s, v) = task.await.unwrap();
+        assert_eq!(s, StatusCode::OK, "{v}");
+        posted += 1;
+    }
+    let (s, v) = h.json("POST", "/v1/runs/busy/end", None, json!({})).await;
+    assert_eq!(s, StatusCode::NO_CONTENT, "{v}");
+    let (_, st) = h.get("/v1/runs/busy/state").await;
+    assert_eq!(st["applied"].as_u64().unwrap() as usize, posted, "{st}");
+}
+
+/// Posts records as the robot whose token it is, through the router.
+async fn post_records(
+    router: axum::Router,
+    token: &str,
+    recs: &[fleetslam_core::log::Record],
+) -> (StatusCode, Value) {
+    use tower::ServiceExt;
+    let req = axum::http::Request::builder()
+        .method("POST")
+        .uri("/v1/runs/busy/observations")
+        .header("content-type", "application/json")
+        .header("authorization", format!("Bearer {token}"))
+        .body(axum::body::Body::from(serde_json::to_vec(recs).unwrap()))
+        .unwrap();
+    let resp = router.oneshot(req).await.unwrap();
+    let status = resp.status();
+    let bytes = axum::body::to_bytes(resp.into_body(), usize::MAX)
+        .await
+        .unwrap();
+    (
+        status,
+        serde_json::from_slice(&bytes).unwrap_or(Value::Null),
+    )
+}
+
+/// A websocket upgrade request over a raw socket: the status and JSON body of a refusal.
+async fn refused_upgrade(addr: std::net::SocketAddr, run: &str) -> (u16, Value) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let req = format!(
+        "GET /v1/runs/{run}/live HTTP/1.1\r\nHost: {addr}\r\nConnection: Upgrade\r\n\
+         Upgrade: websocket\r\nSec-WebSocket-Version: 13\r\n\
+         Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n\r\n"
+    );
+    s.write_all(req.as_bytes()).await.unwrap();
+    let mut buf = Vec::new();
+    let mut chunk = [0u8; 4096];
+    loop {
+        let n = s.read(&mut chunk).await.unwrap();
+        assert!(
+            n > 0,
+            "connection closed early: {}",
+            String::from_utf8_lossy(&buf)
+        );
+        buf.extend_from_slice(&chunk[..n]);
+        let text = String::from_utf8_lossy(&buf).to_string();
+        let Some(end) = text.find("\r\n\r\n") else {
+            continue;
+        };
+        let head = text[..end].to_ascii_lowercase();
+        let len: usize = head
+            .lines()
+            .find_map(|l| l.strip_prefix("content-length:"))
+            .map_or(0, |v| v.trim().parse().unwrap());
+        if buf.len() < end + 4 + len {
+            continue;
+        }
+        let status: u16 = head.split_whitespace().nth(1).unwrap().parse().unwrap();
+        let body = serde_json::from_slice(&buf[end + 4..end + 4 + len]).unwrap_or(Value::Null);
+        return (status, body);
+    }
+}
+
+async fn ws_connect(
+    addr: std::net::SocketAddr,
+    run: &str,
+) -> Result<
+    tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>,
+    (u16, Value),
+> {
+    use futures::StreamExt;
+    match tokio_tungstenite::connect_async(format!("ws://{addr}/v1/runs/{run}/live")).await {
+        Ok((mut ws, _)) => {
+            // The first message is the state: the connection is served.
+            let first = ws.next().await.unwrap().unwrap().into_text().unwrap();
+            let v: Value = serde_json::from_str(&first).unwrap();
+            assert_eq!(v["type"], "state");
+            Ok(ws)
+        }
+        // Refused before the upgrade: read the whole answer again over a plain socket.
+        Err(tokio_tungstenite::tungstenite::Error::Http(resp)) => {
+            let (status, body) = refused_upgrade(addr, run).await;
+            assert_eq!(status, resp.status().as_u16());
+            Err((status, body))
+        }
+        Err(e) => panic!("websocket connection failed: {e}"),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn websocket_connections_are_bounded_per_run_and_in_total() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::open_default(dir.path()).await.unwrap();
+    let mut api = ApiConfig::default();
+    api.coordinator.ws_max_per_run = 2;
+    api.coordinator.ws_max_total = 3;
+    let router = app(AppState::new(store.clone(), api));
+    let h = Harness {
+        router: router.clone(),
+        store,
+        dir: tempfile::tempdir().unwrap(),
+    };
+    let log = sim_log(1, 2.0);
+    let mut runs = Vec::new();
+    for _ in 0..2 {
+        let (s, v) = h
+            .json("POST", "/v1/runs", None, json!({"header": log.header}))
+            .await;
+        assert_eq!(s, StatusCode::CREATED, "{v}");
+        runs.push(v["id"].as_str().unwrap().to_string());
+    }
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let server = tokio::spawn(async move { axum::serve(listener, router).await.unwrap() });
+
+    let a1 = ws_connect(addr, &runs[0]).await.unwrap();
+    let _a2 = ws_connect(addr, &runs[0]).await.unwrap();
+    let (status, body) = ws_connect(addr, &runs[0]).await.unwrap_err();
+    assert_eq!(status, 503, "{body}");
+    assert_eq!(body["error"], "busy", "{body}");
+    assert!(
+        body["message"].as_str().unwrap().contains("ws_max_per_run"),
+        "{body}"
+    );
+    let _b1 = ws_connect(addr, &runs[1]).await.unwrap();
+    let (status, body) = ws_connect(addr, &runs[1]).await.unwrap_err();
+    assert_eq!(status, 503, "{body}");
+    assert!(
+        body["message"].as_str().unwrap().contains("ws_max_total"),
+        "{body}"
+    );
+    // An unknown run is still a 404, not a connection.
+    let (s, v) = h.get("/v1/runs/nope/live").await;
+    assert!(s.is_client_error(), "{s} {v}");
+
+    // A closed connection gives its slot back.
+    drop(a1);
+    let mut again = None;
+    for _ in 0..100 {
+        match ws_connect(addr, &runs[0]).await {
+            Ok(ws) => {
+                again = Some(ws);
+                break;
+            }
+            Err((503, _)) => tokio::time::sleep(Duration::from_millis(20)).await,
+            Err(other) => panic!("{other:?}"),
+        }
+    }
+    assert!(again.is_some(), "the slot of a closed connection came back");
+    server.abort();
+}

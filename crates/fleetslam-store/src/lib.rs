@@ -695,26 +695,30 @@ impl Store {
         Ok(n > 0)
     }
 
-    /// The stored body of record `seq` of `robot` in a run, if any: what a repeated seq is
-    /// compared with.
+    /// The stored body of record `seq` of `robot` in a run, and the reason it was
+    /// quarantined if it was, when there is such a record: what a repeated seq is compared
+    /// with.
     pub async fn record_body(
         &self,
         run_id: &str,
         robot_id: &str,
         seq: i64,
-    ) -> Result<Option<String>, StoreError> {
-        let sql = "SELECT body FROM observations WHERE run_id = $1 AND robot_id = $2 AND seq = $3";
-        let body = with_pool!(&self.inner.pool, pool => {
+    ) -> Result<Option<(String, Option<String>)>, StoreError> {
+        let sql = "SELECT body, rejected FROM observations WHERE run_id = $1 AND robot_id = $2 AND seq = $3";
+        let found = with_pool!(&self.inner.pool, pool => {
             sqlx::query(sql)
                 .bind(run_id)
                 .bind(robot_id)
                 .bind(seq)
                 .fetch_optional(pool)
                 .await?
-                .map(|row| row.try_get::<String, _>("body"))
+                .map(|row| Ok::<_, sqlx::Error>((
+                    row.try_get::<String, _>("body")?,
+                    row.try_get::<Option<String>, _>("rejected")?,
+                )))
                 .transpose()?
         });
-        Ok(body)
+        Ok(found)
     }
 
     /// The highest stored seq of each robot of a run that has records.

@@ -150,12 +150,12 @@ pub fn check_start(start: &PoseGaussian) -> Result<(), String> {
         return Err(format!("cov has a non-finite number: {c:?}"));
     }
     let scale = c.iter().flatten().fold(0.0f64, |a, v| a.max(v.abs()));
-    for i in 0..3 {
-        for j in 0..i {
-            if (c[i][j] - c[j][i]).abs() > 1e-9 * (1.0 + scale) {
+    for (i, row) in c.iter().enumerate() {
+        for (j, &cij) in row.iter().enumerate().take(i) {
+            if (cij - c[j][i]).abs() > 1e-9 * (1.0 + scale) {
                 return Err(format!(
-                    "cov is not symmetric: cov[{i}][{j}] = {} but cov[{j}][{i}] = {}",
-                    c[i][j], c[j][i]
+                    "cov is not symmetric: cov[{i}][{j}] = {cij} but cov[{j}][{i}] = {}",
+                    c[j][i]
                 ));
             }
         }

@@ -237,7 +237,7 @@ async fn a_panicking_record_is_quarantined_live_and_the_run_goes_on() {
         .filter(|o| o.rejected.is_some())
         .map(|o| (o.robot_id.clone(), o.seq as u64))
         .collect();
-    assert_eq!(marked, [poison.clone()]);
+    assert_eq!(marked, std::slice::from_ref(&poison));
 
     // Bit for bit the offline run of the log without the poison record, trajectories too.
     let cut = without(&log, &[(poison.0.as_str(), poison.1)]);

@@ -5,7 +5,8 @@ use fleetslam_core::log::Log;
 use fleetslam_data::sim::{SimConfig, Simulated, simulate};
 use std::path::PathBuf;
 
-/// `../shared/datasets/<name>` beside the checkout, if present.
+/// `../shared/datasets/<name>` beside the checkout, if present. Panics when it is missing
+/// and `FLEETSLAM_REQUIRE_DATA=1` (CI): the real-data tests must run there, not skip.
 pub fn dataset(name: &str) -> Option<PathBuf> {
     let p = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("..")
@@ -15,6 +16,11 @@ pub fn dataset(name: &str) -> Option<PathBuf> {
     if p.is_dir() {
         Some(p)
     } else {
+        assert!(
+            !std::env::var("FLEETSLAM_REQUIRE_DATA").is_ok_and(|v| v == "1"),
+            "{} is missing and FLEETSLAM_REQUIRE_DATA=1 (set by .ci/run) requires it",
+            p.display()
+        );
         eprintln!("note: {} is missing; skipping", p.display());
         None
     }
@@ -42,4 +48,76 @@ pub fn to_ndjson(log: &Log) -> String {
     let mut buf = Vec::new();
     log.write(&mut buf).expect("writing to memory");
     String::from_utf8(buf).expect("JSON is UTF-8")
+}
+
+pub mod experiments {
+    //! The filter's accuracy experiments, shared by the tests (short spans, few particles)
+    //! and `cargo run --release --example filter_seeds` (the full runs the README reports).
+
+    use fleetslam_core::config::{FastSlamVersion, FilterConfig};
+    use fleetslam_core::filter::FastSlam;
+    use fleetslam_core::log::Log;
+    use fleetslam_data::evaluate::{EvalOptions, Evaluation, evaluate};
+    use fleetslam_data::formats::Truth;
+    use fleetslam_data::import::{Imported, MrclamOptions, import_mrclam};
+    use fleetslam_data::run::{RunMetrics, TrajectoryEstimate, run_log};
+    use fleetslam_data::sim::{SimConfig, simulate};
+    use std::path::Path;
+
+    /// MRCLAM's landmark groups: members 0.18-0.25 m apart, groups more than 1 m apart.
+    pub const MRCLAM_GROUP_WITHIN: f64 = 0.3;
+    /// Without ids a group counts as mapped by a landmark within this distance (m) of its
+    /// centre.
+    pub const MRCLAM_GROUP_RADIUS: f64 = 0.3;
+
+    /// MRCLAM Dataset 6 (all five robots), with or without landmark ids, optionally cut to
+    /// its first `duration` seconds.
+    pub fn mrclam(dir: &Path, no_ids: bool, duration: Option<f64>) -> Imported {
+        let opts = MrclamOptions {
+            no_ids,
+            duration,
+            ..Default::default()
+        };
+        import_mrclam(dir, &opts).expect("import MRCLAM")
+    }
+
+    /// How a run on MRCLAM is evaluated: by id with ids; without, against the truth's
+    /// landmark groups, each matched within [`MRCLAM_GROUP_RADIUS`].
+    pub fn mrclam_eval_options(no_ids: bool) -> EvalOptions {
+        if no_ids {
+            EvalOptions {
+                group_within: Some(MRCLAM_GROUP_WITHIN),
+                landmark_match_radius: MRCLAM_GROUP_RADIUS,
+                ..EvalOptions::default()
+            }
+        } else {
+            EvalOptions::default()
+        }
+    }
+
+    /// Runs the log through a filter of the header's configuration with `particles`,
+    /// `seed` and `version`, and evaluates the result.
+    pub fn run_and_evaluate(
+        log: &Log,
+        truth: &Truth,
+        particles: usize,
+        seed: u64,
+        version: FastSlamVersion,
+        opts: &EvalOptions,
+    ) -> (Evaluation, RunMetrics) {
+        let mut cfg = FilterConfig::from_header(&log.header);
+        cfg.particles = particles;
+        cfg.seed = seed;
+        cfg.version = version;
+        let mut slam = FastSlam::new(cfg).expect("valid configuration");
+        let out = run_log(&mut slam, log, TrajectoryEstimate::Mean, |_, _| {}).expect("run");
+        let ev = evaluate(&out.estimate, truth, out.metrics.shared_frame, opts);
+        (ev, out.metrics)
+    }
+
+    /// The high-control-noise simulation ([`SimConfig::high_control_noise`]) of `seed`.
+    pub fn control_noise(seed: u64, duration: f64) -> (Log, Truth) {
+        let sim = simulate(&SimConfig::high_control_noise(seed, duration)).expect("valid");
+        (sim.log, sim.truth)
+    }
 }

@@ -342,6 +342,16 @@ struct EvaluateArgs {
     /// Alignment: auto (none when the run's start poses share the truth's frame), none, se2.
     #[arg(long, value_parser = ["auto", "none", "se2"], default_value = "auto")]
     align: String,
+    /// Truth landmarks closer than this (m) to each other count as one group at their centre
+    /// (for maps without ids, whose sensor cannot tell such landmarks apart).
+    #[arg(long)]
+    group_within: Option<f64>,
+    /// Largest distance (m) of a nearest-neighbour landmark match.
+    #[arg(long, default_value_t = 1.0)]
+    landmark_match_radius: f64,
+    /// Distance (m) the truth travels between the two poses of a relative pose error.
+    #[arg(long, default_value_t = 1.0)]
+    rpe_distance: f64,
 }
 
 /// Prints to stdout; a closed pipe (`| head`) ends the output quietly instead of panicking.
@@ -606,6 +616,9 @@ fn cmd_evaluate(a: EvaluateArgs) -> Result<()> {
             "se2" => Some(Alignment::Se2),
             _ => None,
         },
+        group_within: a.group_within,
+        landmark_match_radius: a.landmark_match_radius,
+        rpe_distance: a.rpe_distance,
         ..Default::default()
     };
     let ev = evaluate_dir(&a.dir, &a.truth, &opts)?;

@@ -26,45 +26,112 @@ pub enum Association {
     Unknown,
 }
 
-/// Thresholds of data association, outlier rejection and landmark existence.
+/// Thresholds of data association, the robust measurement model and landmark existence.
+///
+/// Every observation adds to its particle's log-weight the log of a mixture: the Gaussian
+/// likelihood of the landmark that explains it best (its squared Mahalanobis distance m²
+/// under the innovation covariance S) plus a constant density for an observation that no
+/// mapped landmark explains (clutter, an outlier or a new landmark):
+///
+/// ```text
+/// ln p(z) = ln( exp(−½ m² − ½ ln|2πS|) + exp(clutter_log_density) )
+/// ```
+///
+/// So the weight falls monotonically as the fit worsens, whether the observation updates a
+/// landmark, is ambiguous, is an outlier or starts a new landmark, and it is the same
+/// expression in FastSLAM 1.0 and 2.0 (2.0's S also holds the pose uncertainty).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct AssociationParams {
-    /// Unknown association: an observation joins the most likely landmark when its squared
-    /// Mahalanobis distance is below this. Default 9.21 (χ² 99%, 2 dof). Larger merges more.
-    pub gate: f64,
-    /// Unknown association: an observation farther than this from every landmark starts a
-    /// new one; between `gate` and this it is ambiguous and ignored. Default 16.0. Lower
+    /// Unknown association: an observation may join a landmark when its squared Mahalanobis
+    /// distance is below this. Default `null`: the χ² quantile of `gate_probability` for the
+    /// measurement's dimension (9.21 for 2D range-bearing, 11.34 for 3D points at 0.99).
+    pub gate: Option<f64>,
+    /// Probability mass of a true match inside the gate, when `gate` is `null`. Default 0.99.
+    pub gate_probability: f64,
+    /// Unknown association: an observation farther than this from every landmark (squared
+    /// Mahalanobis distance) starts a tentative landmark; between the gate and this it is
+    /// ambiguous and changes no landmark (its weight still counts). Default `null`: the χ²
+    /// quantile of `new_landmark_probability` (13.82 in 2D, 16.27 in 3D at 0.999). Lower
     /// values create more (possibly duplicate) landmarks.
-    pub new_landmark: f64,
+    pub new_landmark: Option<f64>,
+    /// Probability for the default `new_landmark` threshold. Default 0.999.
+    pub new_landmark_probability: f64,
+    /// Log density of an observation that no mapped landmark explains (clutter, outlier or
+    /// new landmark), in the measurement's units (per m·rad in 2D, per m³ in 3D). Default
+    /// `null`: the density of the sensor noise N(0, Q) at the `new_landmark` distance,
+    /// `−½ (new_landmark + ln|2πQ|)`, so that an observation weighs the same whether it starts
+    /// a landmark or matches one at that distance. Higher values make the weights more
+    /// tolerant of gross outliers and of a robot that is off.
+    pub clutter_log_density: Option<f64>,
     /// Any association: an innovation beyond this squared Mahalanobis distance is an outlier
-    /// that does not update the landmark, and weighs the particle as if it lay on this
-    /// boundary (a robust, flat-tailed likelihood). Default `null` (off): once a robot is
-    /// lost, a gate rejects the very observations that would bring it back. On MRCLAM
-    /// Dataset 6 (500 particles, seeds 1-3) a gate of 25 lost a robot for good in one run of
-    /// three (team ATE 0.89 m) where no gate gave 0.18-0.30 m.
+    /// that does not update the landmark (its weight is the mixture above, like any other).
+    /// Default `null` (off): once a robot is lost, a gate rejects the very observations that
+    /// would bring it back. On MRCLAM Dataset 6 (500 particles, seeds 1-3) a gate of 25 lost
+    /// a robot for good in one run of three (team ATE 0.89 m) where no gate gave 0.18-0.30 m.
     pub outlier: Option<f64>,
+    /// Existence log-odds of a landmark before its first observation. Default 0.
+    pub existence_prior: f64,
     /// Existence log-odds added per observation of a landmark. Default 1.0.
     pub existence_hit: f64,
-    /// Existence log-odds removed when a landmark in view was not observed. Default 0.4.
-    /// Higher removes spurious landmarks faster, and real ones missed by the detector too.
+    /// Existence log-odds removed when a landmark in the sensor's field of view was not
+    /// observed (unknown association; needs `sensor_range`). Default 0.4. Higher removes
+    /// spurious landmarks faster, and real ones missed by the detector too. A landmark is
+    /// removed when its log-odds fall below zero.
     pub existence_miss: f64,
     /// Existence log-odds cap, so that long-lived landmarks can still be removed. Default 8.
     pub existence_max: f64,
+    /// Unknown association: a landmark is tentative (kept and associated, but not reported
+    /// in the estimate's map) until it has been observed this many times. Default 3; 1
+    /// reports every landmark at once.
+    pub confirm_hits: u32,
 }
 
 impl Default for AssociationParams {
     fn default() -> Self {
         Self {
-            gate: 9.21,
-            new_landmark: 16.0,
+            gate: None,
+            gate_probability: 0.99,
+            new_landmark: None,
+            new_landmark_probability: 0.999,
+            clutter_log_density: None,
             outlier: None,
+            existence_prior: 0.0,
             existence_hit: 1.0,
             existence_miss: 0.4,
             existence_max: 8.0,
+            confirm_hits: 3,
         }
     }
 }
+
+impl AssociationParams {
+    /// The association gate (squared Mahalanobis distance) for measurements of `dim`
+    /// components.
+    pub fn gate_for(&self, dim: usize) -> f64 {
+        self.gate
+            .unwrap_or_else(|| crate::stats::chi2_quantile(self.gate_probability, dim as u32))
+    }
+
+    /// The new-landmark threshold for measurements of `dim` components (never below the
+    /// gate).
+    pub fn new_landmark_for(&self, dim: usize) -> f64 {
+        let t = self.new_landmark.unwrap_or_else(|| {
+            crate::stats::chi2_quantile(self.new_landmark_probability, dim as u32)
+        });
+        t.max(self.gate_for(dim))
+    }
+
+    /// The clutter log density for measurement noise `q` (the covariance of `dim`
+    /// components).
+    pub fn clutter_for(&self, dim: usize, q_logdet: f64) -> f64 {
+        self.clutter_log_density
+            .unwrap_or_else(|| -0.5 * (self.new_landmark_for(dim) + dim as f64 * LN_2PI + q_logdet))
+    }
+}
+
+/// ln(2π).
+pub(crate) const LN_2PI: f64 = 1.837_877_066_409_345_3;
 
 /// The name of the built-in EKF updater in [`FilterConfig::updater`].
 pub const EKF_UPDATER: &str = "ekf";
@@ -188,6 +255,12 @@ impl FilterConfig {
         }
     }
 
+    /// Whether a landmark belongs to the reported map: with unknown association only once it
+    /// has been observed `confirm_hits` times (before that it is tentative); with ids always.
+    pub fn is_confirmed(&self, lm: &crate::map::Landmark) -> bool {
+        self.association == Association::Known || lm.hits >= self.association_params.confirm_hits
+    }
+
     pub fn validate(&self) -> Result<(), ConfigError> {
         let err = |s: String| Err(ConfigError(s));
         if self.particles == 0 || self.particles > 1_000_000 {
@@ -220,16 +293,35 @@ impl FilterConfig {
             .validate("sighting_noise")
             .map_err(ConfigError)?;
         let a = &self.association_params;
-        if !(a.gate.is_finite() && a.gate > 0.0) {
+        let prob_ok = |p: f64| p.is_finite() && p > 0.0 && p < 1.0;
+        if !prob_ok(a.gate_probability) || !prob_ok(a.new_landmark_probability) {
             return err(format!(
-                "association_params.gate must be > 0, got {}",
-                a.gate
+                "association_params.gate_probability and new_landmark_probability must lie in \
+                 (0, 1), got {} and {}",
+                a.gate_probability, a.new_landmark_probability
             ));
         }
-        if !(a.new_landmark.is_finite() && a.new_landmark >= a.gate) {
+        if let Some(g) = a.gate
+            && !(g.is_finite() && g > 0.0)
+        {
             return err(format!(
-                "association_params.new_landmark must be >= gate ({}), got {}",
-                a.gate, a.new_landmark
+                "association_params.gate must be > 0 or null, got {g}"
+            ));
+        }
+        let dim = self.landmark_kind.dim();
+        if let Some(t) = a.new_landmark
+            && !(t.is_finite() && t >= a.gate_for(dim))
+        {
+            return err(format!(
+                "association_params.new_landmark must be >= the gate ({}) or null, got {t}",
+                a.gate_for(dim)
+            ));
+        }
+        if let Some(c) = a.clutter_log_density
+            && !c.is_finite()
+        {
+            return err(format!(
+                "association_params.clutter_log_density must be finite or null, got {c}"
             ));
         }
         if let Some(o) = a.outlier
@@ -239,8 +331,20 @@ impl FilterConfig {
                 "association_params.outlier must be > 0 or null, got {o}"
             ));
         }
-        if !(a.existence_hit >= 0.0 && a.existence_miss >= 0.0 && a.existence_max > 0.0) {
-            return err("association_params.existence_* must be >= 0 (existence_max > 0)".into());
+        if !(a.existence_hit >= 0.0
+            && a.existence_miss >= 0.0
+            && a.existence_max > 0.0
+            && a.existence_prior.is_finite()
+            && a.existence_prior + a.existence_hit >= 0.0)
+        {
+            return err(
+                "association_params.existence_* must be >= 0 (existence_max > 0, \
+                 existence_prior + existence_hit >= 0)"
+                    .into(),
+            );
+        }
+        if a.confirm_hits == 0 {
+            return err("association_params.confirm_hits must be at least 1".into());
         }
         if let Some(r) = &self.sensor_range
             && !(r.max_range.is_finite() && r.max_range > 0.0 && r.fov.is_finite() && r.fov > 0.0)
@@ -277,6 +381,25 @@ mod tests {
         let mut bad = FilterConfig::default();
         bad.sensor_noise.range = -1.0;
         assert!(bad.validate().unwrap_err().0.contains("sensor_noise.range"));
+    }
+
+    #[test]
+    fn gates_are_chi_square_quantiles_by_dimension() {
+        let a = AssociationParams::default();
+        assert!((a.gate_for(2) - 9.2103).abs() < 1e-3);
+        assert!((a.gate_for(3) - 11.3449).abs() < 1e-3);
+        assert!((a.new_landmark_for(2) - 13.8155).abs() < 1e-3);
+        assert!((a.new_landmark_for(3) - 16.2662).abs() < 1e-3);
+        let set = AssociationParams {
+            gate: Some(4.0),
+            new_landmark: Some(2.0),
+            ..a
+        };
+        assert_eq!((set.gate_for(3), set.new_landmark_for(3)), (4.0, 4.0));
+        // The default clutter density is the sensor noise's density at the new-landmark
+        // distance.
+        let c = a.clutter_for(2, 0.0);
+        assert!((c - (-0.5 * (a.new_landmark_for(2) + 2.0 * LN_2PI))).abs() < 1e-12);
     }
 
     #[test]

@@ -3,22 +3,33 @@
 //! Each [`Particle`] holds the pose of every robot of the run and one [`LandmarkMap`]. A
 //! record of robot `r` is applied to every particle:
 //!
-//! 1. **Pose.** FastSLAM 1.0 samples robot `r`'s new pose from the motion model. FastSLAM 2.0
+//! 1. **Association.** By id, or (unknown ids) per particle for the whole record at once,
+//!    with mutual exclusion: the (observation, landmark) pairs within the Mahalanobis gate
+//!    (a χ² quantile for the measurement's dimension unless set) are taken greedily, most
+//!    likely first, each landmark and each observation at most once. An observation left
+//!    over that lies beyond `new_landmark` from every landmark (and from those the record
+//!    started) starts a tentative landmark; otherwise it is ambiguous and changes nothing.
+//!    FastSLAM 2.0 associates at the motion prediction with its covariance, 1.0 at the
+//!    sampled pose.
+//! 2. **Pose.** FastSLAM 1.0 samples robot `r`'s new pose from the motion model. FastSLAM 2.0
 //!    (Montemerlo et al. 2003) first refines the motion prediction `N(x̂, R)` with each
-//!    associated observation, as a Kalman update of the pose with `S = Hₓ P Hₓᵀ + H_m Σ H_mᵀ + Q`,
-//!    and samples from the result. The other robots' poses are untouched.
-//! 2. **Association.** By id, or (unknown ids) per particle by maximum likelihood among the
-//!    landmarks within the Mahalanobis `gate`; beyond `new_landmark` from all of them the
-//!    observation starts a new landmark, and in between it is ignored as ambiguous.
-//! 3. **Landmarks.** Associated landmarks are updated by the run's [`LandmarkUpdater`], one
+//!    matched observation, as a Kalman update of the pose with `S = Hₓ P Hₓᵀ + H_m Σ H_mᵀ + Q`,
+//!    and samples from the result; a particle whose proposal is degenerate (non-finite, or
+//!    no Cholesky factor) samples 1.0's proposal instead and is weighed as in 1.0 (counted in
+//!    `proposal_fallbacks`). The other robots' poses are untouched.
+//! 3. **Landmarks.** Matched landmarks are updated by the run's [`LandmarkUpdater`], one
 //!    batch per observation across the particles of a work item; new ones are initialised by
-//!    it. Innovations beyond the `outlier` distance leave the landmark alone.
-//! 4. **Weight.** The particle's log-weight gains the log-likelihood of each observation (the
-//!    updater's in 1.0; the proposal's marginal in 2.0, which includes the motion noise), with
-//!    outliers floored at the outlier boundary, and of each sighting of another robot given the
-//!    two robots' poses in that particle. Over robots these sums are the product of the paper.
-//! 5. **Existence.** With unknown association, landmarks in view but not observed lose
-//!    existence log-odds and are removed below zero (spurious landmarks).
+//!    it. Innovations beyond the optional `outlier` distance leave the landmark alone.
+//! 4. **Weight.** Every observation adds `ln(N(z; ẑ, S) + exp(clutter_log_density))`: the
+//!    Gaussian likelihood of the landmark explaining it best (the updater's in 1.0; the
+//!    proposal's marginal in 2.0, which includes the pose uncertainty) mixed with a constant
+//!    density for clutter and new landmarks. The weight thus falls monotonically with the
+//!    Mahalanobis distance whether the observation matched, was ambiguous, an outlier or
+//!    new. Each sighting of another robot adds the same mixture given the two robots' poses
+//!    in that particle. Over robots these sums are the product of the paper.
+//! 5. **Existence.** With unknown association, landmarks in the sensor's field of view but
+//!    not observed lose existence log-odds and are removed below zero (spurious landmarks);
+//!    a landmark is reported only once observed `confirm_hits` times.
 //! 6. **Resampling.** Systematic, when the effective sample size falls below a fraction of N.
 //!
 //! Particles are processed in parallel with rayon, in work items of `batch_size` particles.
@@ -33,6 +44,7 @@ use crate::pose::{Pose2, PoseGaussian, weighted_mean_pose, wrap_angle};
 use crate::resample::{normalize_log_weights, systematic};
 use crate::rng::{LANE_ADD_ROBOT, LANE_RESAMPLE, stream};
 use crate::sensor::{LandmarkKind, point3_predict, range_bearing_inverse, range_bearing_predict};
+use crate::stats::log_add_exp;
 use crate::updater::{LandmarkGaussian, LandmarkUpdater, UpdateInput, UpdateOutput};
 use nalgebra::{Matrix3, Vector3};
 use rand::Rng;
@@ -44,7 +56,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 use std::time::Instant;
 
-const LN_2PI: f64 = 1.837_877_066_409_345_3;
+use crate::config::LN_2PI;
 
 /// Errors of the filter; each says what was wrong with the input.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -108,6 +120,10 @@ pub struct FilterStats {
     /// Sightings of robots that are not (yet) in the filter.
     pub unmatched_sightings: u64,
     pub resamples: u64,
+    /// FastSLAM 2.0 particles whose proposal was degenerate (non-finite, or a covariance
+    /// without a Cholesky factor) and that used 1.0's proposal instead.
+    #[serde(default)]
+    pub proposal_fallbacks: u64,
 }
 
 impl FilterStats {
@@ -118,6 +134,7 @@ impl FilterStats {
         self.landmarks_removed += o.landmarks_removed;
         self.outliers += o.outliers;
         self.ignored_observations += o.ignored_observations;
+        self.proposal_fallbacks += o.proposal_fallbacks;
         self
     }
 }
@@ -229,8 +246,14 @@ struct StepCtx<'a> {
     sightings: &'a [(usize, [f64; 2])],
     step: u64,
     known_len: usize,
-    /// Log-likelihood given to an observation that starts a new landmark.
-    ll_new: f64,
+    /// The association gate and new-landmark threshold (squared Mahalanobis distances) for
+    /// the run's measurement dimension.
+    gate: f64,
+    new_landmark: f64,
+    /// Log density of a landmark observation that no mapped landmark explains.
+    clutter: f64,
+    /// The same for a robot sighting (range-bearing, the sighting noise).
+    sighting_clutter: f64,
 }
 
 impl FastSlam {
@@ -487,11 +510,12 @@ impl FastSlam {
             }
         }
 
-        let q_det = match cfg.landmark_kind {
-            LandmarkKind::RangeBearing2d => cfg.sensor_noise.q2().determinant(),
-            LandmarkKind::Point3d => cfg.sensor_noise.q3().determinant(),
+        let dim = cfg.landmark_kind.dim();
+        let q_logdet = match cfg.landmark_kind {
+            LandmarkKind::RangeBearing2d => cfg.sensor_noise.q2().determinant().ln(),
+            LandmarkKind::Point3d => cfg.sensor_noise.q3().determinant().ln(),
         };
-        let dim = cfg.landmark_kind.dim() as f64;
+        let a = &cfg.association_params;
         let ctx = StepCtx {
             cfg,
             updater: self.updater.as_ref(),
@@ -503,7 +527,10 @@ impl FastSlam {
             sightings: &sightings,
             step: self.step,
             known_len,
-            ll_new: -0.5 * cfg.association_params.new_landmark - 0.5 * (dim * LN_2PI + q_det.ln()),
+            gate: a.gate_for(dim),
+            new_landmark: a.new_landmark_for(dim),
+            clutter: a.clutter_for(dim, q_logdet),
+            sighting_clutter: a.clutter_for(2, cfg.sighting_noise.q2().determinant().ln()),
         };
         let best_before = self.best_index();
         let slots_before = self.particles[best_before].map.len();
@@ -638,6 +665,7 @@ impl FastSlam {
         let landmarks = self.particles[best]
             .map
             .iter()
+            .filter(|(_, l)| self.config.is_confirmed(l))
             .map(|(slot, l)| LandmarkEstimate {
                 slot,
                 id: l.id,
@@ -812,22 +840,23 @@ fn q_matrix(cfg: &FilterConfig) -> Matrix3<f64> {
     }
 }
 
-/// Unknown association: the most likely landmark within the gate, `New` beyond
-/// `new_landmark` from every landmark, `Ignore` in between. `p` is the pose covariance
-/// (zero in FastSLAM 1.0).
-fn associate(
+/// The association pre-check compares the squared world distance between an observation's
+/// point and a landmark with `new_landmark` times this slack times the trace of a world-frame
+/// bound of the innovation covariance: a landmark that fails it has a squared Mahalanobis
+/// distance beyond `new_landmark` (the world-frame bound linearises the bearing noise, hence
+/// the slack), so skipping it changes no association and the weight by less than the
+/// Gaussian density at that distance. A pure speed-up.
+const PRECHECK_SLACK: f64 = 1.5;
+
+/// The observation's point in the world and a world-frame variance bound of the sensor noise,
+/// for the association pre-check.
+fn world_point(
     cfg: &FilterConfig,
     q: &Matrix3<f64>,
-    map: &LandmarkMap,
     pose: &Pose2,
-    p: &Matrix3<f64>,
     z: &[f64; 3],
-) -> Action {
-    let kind = cfg.landmark_kind;
-    let params = &cfg.association_params;
-    // The observation's world point, for a cheap and conservative pre-check: the squared
-    // Mahalanobis distance is at least d² / trace(S_world).
-    let (wx, wy, q_world) = match kind {
+) -> (f64, f64, f64) {
+    match cfg.landmark_kind {
         LandmarkKind::RangeBearing2d => {
             let (x, y) = range_bearing_inverse(pose, z[0], z[1]);
             let n = &cfg.sensor_noise;
@@ -837,55 +866,229 @@ fn associate(
             let w = crate::sensor::point3_inverse(pose, z);
             (w[0], w[1], q.trace())
         }
-    };
-    let pose_term = p[(0, 0)] + p[(1, 1)] + p[(2, 2)] * (z[0] * z[0] + z[1] * z[1]);
-    let mut best: Option<(usize, f64)> = None;
-    let mut nearest_m2 = f64::INFINITY;
-    for (slot, lm) in map.iter() {
-        let g = &lm.gaussian;
-        let d2 = (g.mean[0] - wx).powi(2) + (g.mean[1] - wy).powi(2);
-        let bound = (g.cov[0] + g.cov[3] + q_world + pose_term) * 1.5;
-        if d2 > params.new_landmark * bound {
-            continue;
-        }
-        let Some((zhat, hm, hx)) = predict(kind, pose, &g.mean) else {
-            continue;
-        };
-        let s = hm * g.cov3() * hm.transpose() + q + hx * p * hx.transpose();
-        let Some((s_inv, logdet)) = inv_logdet(kind, &s) else {
-            continue;
-        };
-        let nu = innovation(kind, z, &zhat);
-        let m2 = nu.dot(&(s_inv * nu));
-        nearest_m2 = nearest_m2.min(m2);
-        if m2 < params.gate {
-            let ll = -0.5 * m2 - 0.5 * logdet;
-            if best.is_none_or(|(_, b)| ll > b) {
-                best = Some((slot, ll));
-            }
-        }
-    }
-    match best {
-        Some((slot, _)) => Action::Update(slot),
-        None if nearest_m2 > params.new_landmark => Action::New(None),
-        None => Action::Ignore,
     }
 }
 
-/// Flat-tailed log-likelihood of an outlier: the Gaussian's value on the outlier boundary.
+/// Squared Mahalanobis distance and Gaussian log-likelihood of observation `z` of a landmark
+/// `g` from `pose` with pose covariance `p`; `None` for a degenerate geometry.
 #[inline]
-fn outlier_ll(ll: f64, m2: f64, bound: f64) -> f64 {
-    if ll.is_finite() && m2.is_finite() {
-        ll + 0.5 * (m2 - bound)
-    } else {
-        -0.5 * bound - 20.0
+fn match_ll(
+    kind: LandmarkKind,
+    q: &Matrix3<f64>,
+    g: &LandmarkGaussian,
+    pose: &Pose2,
+    p: &Matrix3<f64>,
+    z: &[f64; 3],
+) -> Option<(f64, f64)> {
+    let (zhat, hm, hx) = predict(kind, pose, &g.mean)?;
+    let s = hm * g.cov3() * hm.transpose() + q + hx * p * hx.transpose();
+    let (s_inv, logdet) = inv_logdet(kind, &s)?;
+    let nu = innovation(kind, z, &zhat);
+    let m2 = nu.dot(&(s_inv * nu));
+    let ll = -0.5 * m2 - 0.5 * (kind.dim() as f64 * LN_2PI + logdet);
+    (m2.is_finite() && ll.is_finite()).then_some((m2, ll))
+}
+
+/// The association of a whole record in one particle, with mutual exclusion: each landmark
+/// explains at most one observation of the record and each observation at most one
+/// landmark. Writes each observation's action and the Gaussian log-likelihood of the
+/// landmark that explains it best (its match, or the best landmark left free by the others;
+/// `-inf` if none) into `acts` and `best_ll`. `p` is the pose covariance (zero in 1.0).
+///
+/// Unknown association is greedy by likelihood: the pairs within the gate are taken best
+/// first. An observation left without a landmark starts one if it lies beyond `new_landmark`
+/// from every landmark of the map and from the landmarks started earlier in the same record;
+/// otherwise it is ambiguous (`Ignore`).
+#[allow(clippy::too_many_arguments)]
+fn associate_record(
+    ctx: &StepCtx<'_>,
+    q: &Matrix3<f64>,
+    map: &LandmarkMap,
+    pose: &Pose2,
+    p: &Matrix3<f64>,
+    acts: &mut [Action],
+    best_ll: &mut [f64],
+) {
+    let cfg = ctx.cfg;
+    let kind = cfg.landmark_kind;
+    best_ll.fill(f64::NEG_INFINITY);
+    if cfg.association == Association::Known {
+        for (j, o) in ctx.obs.iter().enumerate() {
+            acts[j] = match o.slot {
+                Some(s) if map.get(s).is_some() => Action::Update(s),
+                Some(s) => Action::New(Some(s)),
+                None => Action::Ignore,
+            };
+        }
+        return;
     }
+    let pose_term = p[(0, 0)] + p[(1, 1)];
+    // Every computed (observation, slot, m², ll); the gated ones are the candidates.
+    let mut pairs: Vec<(usize, usize, f64, f64)> = Vec::new();
+    let mut nearest_m2 = vec![f64::INFINITY; ctx.obs.len()];
+    for (j, o) in ctx.obs.iter().enumerate() {
+        let (wx, wy, q_world) = world_point(cfg, q, pose, &o.z);
+        let pose_term = pose_term + p[(2, 2)] * (o.z[0] * o.z[0] + o.z[1] * o.z[1]);
+        for (slot, lm) in map.iter() {
+            let g = &lm.gaussian;
+            let d2 = (g.mean[0] - wx).powi(2) + (g.mean[1] - wy).powi(2);
+            let bound = (g.cov[0] + g.cov[3] + q_world + pose_term) * PRECHECK_SLACK;
+            if d2 > ctx.new_landmark * bound {
+                continue;
+            }
+            if let Some((m2, ll)) = match_ll(kind, q, g, pose, p, &o.z) {
+                nearest_m2[j] = nearest_m2[j].min(m2);
+                pairs.push((j, slot, m2, ll));
+            }
+        }
+    }
+    let mut cands: Vec<&(usize, usize, f64, f64)> =
+        pairs.iter().filter(|c| c.2 < ctx.gate).collect();
+    cands.sort_by(|a, b| b.3.total_cmp(&a.3).then(a.0.cmp(&b.0)).then(a.1.cmp(&b.1)));
+    let mut taken: Vec<usize> = Vec::new();
+    for a in acts.iter_mut() {
+        *a = Action::Ignore;
+    }
+    let mut assigned = vec![false; ctx.obs.len()];
+    for &&(j, slot, _, ll) in &cands {
+        if assigned[j] || taken.contains(&slot) {
+            continue;
+        }
+        assigned[j] = true;
+        taken.push(slot);
+        acts[j] = Action::Update(slot);
+        best_ll[j] = ll;
+    }
+    let mut fresh: Vec<LandmarkGaussian> = Vec::new();
+    for (j, o) in ctx.obs.iter().enumerate() {
+        if assigned[j] {
+            continue;
+        }
+        best_ll[j] = pairs
+            .iter()
+            .filter(|c| c.0 == j && !taken.contains(&c.1))
+            .map(|c| c.3)
+            .fold(f64::NEG_INFINITY, f64::max);
+        if nearest_m2[j] <= ctx.new_landmark {
+            continue;
+        }
+        // Not near any landmark of the map: new, unless a landmark started by an earlier
+        // observation of this record explains it.
+        let near_fresh = fresh.iter().any(|g| {
+            match_ll(kind, q, g, pose, p, &o.z).is_none_or(|(m2, _)| m2 <= ctx.new_landmark)
+        });
+        if !near_fresh {
+            fresh.push(ctx.updater.initialize(pose, &o.z));
+            acts[j] = Action::New(None);
+        }
+    }
+}
+
+/// FastSLAM 2.0's proposal for one particle: the motion prediction `N(mean0, pc)` refined by
+/// each observation the association matched (a Kalman update of the pose per observation),
+/// then sampled. Returns the sampled pose and the particle's log-weight increment, the sum of
+/// each observation's mixture likelihood (its proposal marginal for the matched ones), or
+/// `None` when the proposal is degenerate (non-finite, or a covariance without a Cholesky
+/// factor): the caller then falls back to 1.0's proposal for this particle. Matched
+/// observations whose prediction fails, or beyond the `outlier` bound, become `Outlier`.
+#[allow(clippy::too_many_arguments)]
+fn propose(
+    ctx: &StepCtx<'_>,
+    q: &Matrix3<f64>,
+    map: &LandmarkMap,
+    mean0: &Pose2,
+    pc0: &Matrix3<f64>,
+    acts: &mut [Action],
+    best_ll: &[f64],
+    rng: &mut ChaCha8Rng,
+) -> Option<(Pose2, f64)> {
+    let kind = ctx.cfg.landmark_kind;
+    let outlier = ctx.cfg.association_params.outlier;
+    let mut mu = Vector3::new(mean0.x, mean0.y, mean0.theta);
+    let mut pc = *pc0;
+    let mut dw = 0.0;
+    for (j, o) in ctx.obs.iter().enumerate() {
+        let slot = match acts[j] {
+            Action::Update(s) => s,
+            Action::New(Some(_)) | Action::Outlier => {
+                dw += ctx.clutter;
+                continue;
+            }
+            Action::New(None) | Action::Ignore => {
+                dw += log_add_exp(best_ll[j], ctx.clutter);
+                continue;
+            }
+        };
+        let pose = Pose2::new(mu[0], mu[1], mu[2]);
+        let Some(lm) = map.get(slot) else {
+            acts[j] = Action::Outlier;
+            dw += ctx.clutter;
+            continue;
+        };
+        let Some((zhat, hm, hx)) = predict(kind, &pose, &lm.gaussian.mean) else {
+            acts[j] = Action::Outlier;
+            dw += ctx.clutter;
+            continue;
+        };
+        let qj = hm * lm.gaussian.cov3() * hm.transpose() + q;
+        let pht = pc * hx.transpose();
+        let s = hx * pht + qj;
+        let Some((s_inv, logdet)) = inv_logdet(kind, &s) else {
+            acts[j] = Action::Outlier;
+            dw += ctx.clutter;
+            continue;
+        };
+        let nu = innovation(kind, &o.z, &zhat);
+        let m2 = nu.dot(&(s_inv * nu));
+        let ll = -0.5 * m2 - 0.5 * (kind.dim() as f64 * LN_2PI + logdet);
+        dw += log_add_exp(
+            if ll.is_finite() {
+                ll
+            } else {
+                f64::NEG_INFINITY
+            },
+            ctx.clutter,
+        );
+        if outlier.is_some_and(|b| !(m2 <= b)) {
+            acts[j] = Action::Outlier;
+            continue;
+        }
+        let k = pht * s_inv;
+        mu += k * nu;
+        mu[2] = wrap_angle(mu[2]);
+        let ikh = Matrix3::identity() - k * hx;
+        pc = ikh * pc * ikh.transpose() + k * qj * k.transpose();
+        pc = 0.5 * (pc + pc.transpose());
+    }
+    if !(mu.iter().all(|v| v.is_finite()) && pc.iter().all(|v| v.is_finite())) {
+        return None;
+    }
+    // A zero covariance (no motion noise) is a point proposal, not a failure.
+    let e = if pc.iter().all(|v| *v == 0.0) {
+        Vector3::zeros()
+    } else {
+        cholesky_psd(&pc)? * normal3(rng)
+    };
+    Some((
+        Pose2::new(mu[0] + e[0], mu[1] + e[1], wrap_angle(mu[2] + e[2])),
+        dw,
+    ))
+}
+
+/// A sample of the motion model (FastSLAM 1.0's proposal).
+fn sample_motion(ctx: &StepCtx<'_>, prev: &Pose2, rng: &mut ChaCha8Rng) -> Pose2 {
+    let e = Pose2::new(
+        ctx.std[0] * rng.sample::<f64, _>(StandardNormal),
+        ctx.std[1] * rng.sample::<f64, _>(StandardNormal),
+        ctx.std[2] * rng.sample::<f64, _>(StandardNormal),
+    );
+    let noisy = Pose2::new(ctx.inc.x + e.x, ctx.inc.y + e.y, ctx.inc.theta + e.theta);
+    prev.compose(&noisy)
 }
 
 /// One work item: `chunk` holds particles `base..base + chunk.len()`.
 fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> FilterStats {
     let cfg = ctx.cfg;
-    let kind = cfg.landmark_kind;
     let r = ctx.robot;
     let n = chunk.len();
     let nobs = ctx.obs.len();
@@ -900,93 +1103,44 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
             p.map.ensure_slots(ctx.known_len);
         }
     }
-    // actions[i * nobs + j]: what particle i does with observation j.
+    // actions[i * nobs + j]: what particle i does with observation j; best_ll the Gaussian
+    // log-likelihood of the landmark explaining it best.
     let mut actions = vec![Action::Ignore; n * nobs];
+    let mut best_ll = vec![f64::NEG_INFINITY; n * nobs];
+    // Whether particle i weighs its observations from the updater's likelihoods (1.0, or a
+    // 2.0 particle whose proposal was degenerate) rather than from its proposal.
+    let mut weigh_in_update = vec![true; n];
     let use_v2 = cfg.version == FastSlamVersion::V2 && nobs > 0;
 
-    // 1. Poses (and, in 2.0, association and weights from the proposal).
+    // 1. Poses, association, and in 2.0 the weights from the proposal.
     for (i, p) in chunk.iter_mut().enumerate() {
         let prev = p.poses[r];
         let rng = &mut rngs[i];
-        if !use_v2 {
-            let e = Pose2::new(
-                ctx.std[0] * rng.sample::<f64, _>(StandardNormal),
-                ctx.std[1] * rng.sample::<f64, _>(StandardNormal),
-                ctx.std[2] * rng.sample::<f64, _>(StandardNormal),
-            );
-            let noisy = Pose2::new(ctx.inc.x + e.x, ctx.inc.y + e.y, ctx.inc.theta + e.theta);
-            p.poses[r] = prev.compose(&noisy);
-            continue;
-        }
-        let mean0 = prev.compose(&ctx.inc);
-        let mut mu = Vector3::new(mean0.x, mean0.y, mean0.theta);
-        let mut pc = covariance_in_world(&prev, &ctx.var);
-        for (j, o) in ctx.obs.iter().enumerate() {
-            let pose = Pose2::new(mu[0], mu[1], mu[2]);
-            let action = match o.slot {
-                Some(s) => match p.map.get(s) {
-                    Some(_) => Action::Update(s),
-                    None => Action::New(Some(s)),
-                },
-                None => associate(cfg, &q, &p.map, &pose, &pc, &o.z),
-            };
-            let slot = match action {
-                Action::Update(s) => s,
-                Action::New(_) => {
-                    p.log_w += ctx.ll_new;
-                    actions[i * nobs + j] = action;
-                    continue;
-                }
-                _ => {
-                    actions[i * nobs + j] = action;
-                    continue;
-                }
-            };
-            let Some(lm) = p.map.get(slot) else { continue };
-            let Some((zhat, hm, hx)) = predict(kind, &pose, &lm.gaussian.mean) else {
-                actions[i * nobs + j] = Action::Outlier;
-                p.log_w += outlier_ll(f64::NAN, f64::NAN, outlier.unwrap_or(25.0));
-                continue;
-            };
-            let qj = hm * lm.gaussian.cov3() * hm.transpose() + q;
-            let pht = pc * hx.transpose();
-            let s = hx * pht + qj;
-            let Some((s_inv, logdet)) = inv_logdet(kind, &s) else {
-                actions[i * nobs + j] = Action::Outlier;
-                p.log_w += outlier_ll(f64::NAN, f64::NAN, outlier.unwrap_or(25.0));
-                continue;
-            };
-            let nu = innovation(kind, &o.z, &zhat);
-            let m2 = nu.dot(&(s_inv * nu));
-            let dim = kind.dim() as f64;
-            let ll = -0.5 * m2 - 0.5 * (dim * LN_2PI + logdet);
-            if let Some(bound) = outlier
-                && m2 > bound
-            {
-                actions[i * nobs + j] = Action::Outlier;
-                p.log_w += outlier_ll(ll, m2, bound);
+        let acts = &mut actions[i * nobs..(i + 1) * nobs];
+        let bll = &mut best_ll[i * nobs..(i + 1) * nobs];
+        if use_v2 {
+            let mean0 = prev.compose(&ctx.inc);
+            let pc0 = covariance_in_world(&prev, &ctx.var);
+            associate_record(ctx, &q, &p.map, &mean0, &pc0, acts, bll);
+            if let Some((pose, dw)) = propose(ctx, &q, &p.map, &mean0, &pc0, acts, bll, rng) {
+                p.poses[r] = pose;
+                p.log_w += dw;
+                weigh_in_update[i] = false;
                 continue;
             }
-            actions[i * nobs + j] = Action::Update(slot);
-            p.log_w += ll;
-            let k = pht * s_inv;
-            mu += k * nu;
-            mu[2] = wrap_angle(mu[2]);
-            let ikh = Matrix3::identity() - k * hx;
-            pc = ikh * pc * ikh.transpose() + k * qj * k.transpose();
-            pc = 0.5 * (pc + pc.transpose());
+            stats.proposal_fallbacks += 1;
         }
-        let e = match cholesky_psd(&pc) {
-            Some(l) => l * normal3(rng),
-            None => Vector3::zeros(),
-        };
-        p.poses[r] = Pose2::new(mu[0] + e[0], mu[1] + e[1], wrap_angle(mu[2] + e[2]));
+        let pose = sample_motion(ctx, &prev, rng);
+        p.poses[r] = pose;
+        if nobs > 0 {
+            associate_record(ctx, &q, &p.map, &pose, &Matrix3::zeros(), acts, bll);
+        }
     }
 
     // 2. Landmarks, one updater batch per observation.
     let mut inputs: Vec<UpdateInput> = Vec::with_capacity(n);
     let mut outputs: Vec<UpdateOutput> = Vec::with_capacity(n);
-    let mut who: Vec<(usize, usize)> = Vec::with_capacity(n);
+    let mut who: Vec<(usize, usize, bool)> = Vec::with_capacity(n);
     let mut observed: Vec<Vec<usize>> = vec![
         Vec::new();
         if cfg.association == Association::Unknown {
@@ -995,31 +1149,25 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
             0
         }
     ];
+    let a = &cfg.association_params;
     for (j, o) in ctx.obs.iter().enumerate() {
         inputs.clear();
         who.clear();
         for (i, p) in chunk.iter_mut().enumerate() {
             let pose = p.poses[r];
-            let mut action = if use_v2 {
-                actions[i * nobs + j]
-            } else {
-                match o.slot {
-                    Some(s) => match p.map.get(s) {
-                        Some(_) => Action::Update(s),
-                        None => Action::New(Some(s)),
-                    },
-                    None => associate(cfg, &q, &p.map, &pose, &Matrix3::zeros(), &o.z),
-                }
-            };
+            let mut action = actions[i * nobs + j];
+            let v1 = weigh_in_update[i];
+            let mut weigh = v1;
             // A known id seen twice in one record: the second sighting updates the landmark
             // the first one created.
             if let Action::New(Some(s)) = action
                 && p.map.get(s).is_some()
             {
                 action = Action::Update(s);
-                if use_v2 {
-                    // The proposal counted it as new; it is an update now.
-                    p.log_w -= ctx.ll_new;
+                if !v1 {
+                    // The proposal counted it as clutter; its likelihood comes from the update.
+                    p.log_w -= ctx.clutter;
+                    weigh = true;
                 }
             }
             match action {
@@ -1030,7 +1178,7 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
                             pose,
                             z: o.z,
                         });
-                        who.push((i, s));
+                        who.push((i, s, weigh));
                     }
                 }
                 Action::New(slot) => {
@@ -1038,28 +1186,36 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
                     let lm = Landmark {
                         gaussian: g,
                         id: o.id,
-                        existence: cfg.association_params.existence_hit,
+                        existence: (a.existence_prior + a.existence_hit).min(a.existence_max),
                         hits: 1,
                     };
+                    if v1 {
+                        p.log_w += log_add_exp(best_ll[i * nobs + j], ctx.clutter);
+                    }
                     let s = match slot {
                         Some(s) => {
                             p.map.set(s, lm);
                             s
                         }
-                        None => {
-                            if !use_v2 {
-                                p.log_w += ctx.ll_new;
-                            }
-                            p.map.push(lm)
-                        }
+                        None => p.map.push(lm),
                     };
                     if !observed.is_empty() {
                         observed[i].push(s);
                     }
                     stats.landmarks_created += 1;
                 }
-                Action::Ignore => stats.ignored_observations += 1,
-                Action::Outlier => stats.outliers += 1,
+                Action::Ignore => {
+                    if v1 {
+                        p.log_w += log_add_exp(best_ll[i * nobs + j], ctx.clutter);
+                    }
+                    stats.ignored_observations += 1;
+                }
+                Action::Outlier => {
+                    if v1 {
+                        p.log_w += ctx.clutter;
+                    }
+                    stats.outliers += 1;
+                }
             }
         }
         if inputs.is_empty() {
@@ -1071,21 +1227,19 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
         ctx.updater.update_batch(&inputs, &mut outputs);
         stats.update_nanos += t0.elapsed().as_nanos() as u64;
         stats.landmark_updates += inputs.len() as u64;
-        for (&(i, s), out) in who.iter().zip(&outputs) {
+        for (&(i, s, weigh), out) in who.iter().zip(&outputs) {
             let p = &mut chunk[i];
-            if !use_v2 {
-                if let Some(bound) = outlier
-                    && (out.mahalanobis2.is_nan() || out.mahalanobis2 > bound)
-                {
-                    p.log_w += outlier_ll(out.log_likelihood, out.mahalanobis2, bound);
-                    stats.outliers += 1;
-                    continue;
-                }
-                p.log_w += if out.log_likelihood.is_finite() {
+            if weigh {
+                let ll = if out.log_likelihood.is_finite() {
                     out.log_likelihood
                 } else {
-                    outlier_ll(f64::NAN, f64::NAN, outlier.unwrap_or(25.0))
+                    f64::NEG_INFINITY
                 };
+                p.log_w += log_add_exp(ll, ctx.clutter);
+            }
+            if outlier.is_some_and(|b| !(out.mahalanobis2 <= b)) {
+                stats.outliers += 1;
+                continue;
             }
             if !out.posterior.is_finite() {
                 continue;
@@ -1093,7 +1247,6 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
             let Some(old) = p.map.get(s).copied() else {
                 continue;
             };
-            let a = &cfg.association_params;
             p.map.set(
                 s,
                 Landmark {
@@ -1109,33 +1262,29 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
         }
     }
 
-    // 3. Sightings of other robots.
+    // 3. Sightings of other robots: the same mixture, with the sighting noise.
     if !ctx.sightings.is_empty() {
         let qs = cfg.sighting_noise.q2();
         let qs_inv = qs.try_inverse().unwrap_or_else(nalgebra::Matrix2::identity);
         let logdet = qs.determinant().ln();
-        let bound = outlier.unwrap_or(f64::INFINITY);
         for p in chunk.iter_mut() {
             for &(other, z) in ctx.sightings {
                 let q = p.poses[other];
-                let Some((zhat, _, _)) = range_bearing_predict(&p.poses[r], q.x, q.y) else {
-                    continue;
+                let ll = match range_bearing_predict(&p.poses[r], q.x, q.y) {
+                    Some((zhat, _, _)) => {
+                        let nu = nalgebra::Vector2::new(z[0] - zhat[0], wrap_angle(z[1] - zhat[1]));
+                        let m2 = nu.dot(&(qs_inv * nu));
+                        -0.5 * m2 - LN_2PI - 0.5 * logdet
+                    }
+                    None => f64::NEG_INFINITY,
                 };
-                let nu = nalgebra::Vector2::new(z[0] - zhat[0], wrap_angle(z[1] - zhat[1]));
-                let m2 = nu.dot(&(qs_inv * nu));
-                let ll = -0.5 * m2 - LN_2PI - 0.5 * logdet;
-                p.log_w += if m2 > bound {
-                    outlier_ll(ll, m2, bound)
-                } else {
-                    ll
-                };
+                p.log_w += log_add_exp(ll, ctx.sighting_clutter);
             }
         }
     }
 
     // 4. Existence of landmarks in view (unknown association).
     if let (Some(range), false) = (&cfg.sensor_range, observed.is_empty() || nobs == 0) {
-        let a = &cfg.association_params;
         for (i, p) in chunk.iter_mut().enumerate() {
             let pose = p.poses[r];
             let seen = &observed[i];
@@ -1171,4 +1320,234 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
         }
     }
     stats
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::log::LandmarkObservation;
+    use crate::motion::MotionNoise;
+
+    fn still() -> MotionNoise {
+        MotionNoise {
+            trans_per_m: 0.0,
+            lateral_per_m: 0.0,
+            rot_per_rad: 0.0,
+            rot_per_m: 0.0,
+            trans_per_sqrt_s: 0.0,
+            rot_per_sqrt_s: 0.0,
+            random_walk_max_dt: 1.0,
+        }
+    }
+
+    fn config(version: FastSlamVersion, association: Association, n: usize) -> FilterConfig {
+        FilterConfig {
+            particles: n,
+            version,
+            association,
+            motion_noise: still(),
+            resample_threshold: 0.0,
+            ..Default::default()
+        }
+    }
+
+    /// A filter whose particle k maps one landmark (id 7) at (2 + offsets[k], 0), robot at
+    /// the origin facing +x.
+    fn filter_with_offsets(
+        version: FastSlamVersion,
+        association: Association,
+        offsets: &[f64],
+    ) -> FastSlam {
+        let cfg = config(version, association, offsets.len());
+        let mut f = FastSlam::new(cfg).unwrap();
+        f.add_robot("r", &PoseGaussian::exact(Pose2::default()), 0.0)
+            .unwrap();
+        let mut snap = f.snapshot();
+        for (p, d) in snap.particles.iter_mut().zip(offsets) {
+            p.map.push(Landmark {
+                gaussian: LandmarkGaussian {
+                    mean: [2.0 + d, 0.0, 0.0],
+                    cov: [0.01, 0.0, 0.0, 0.01, 0.0, 0.0],
+                },
+                id: Some(7),
+                existence: 5.0,
+                hits: 5,
+            });
+        }
+        snap.known_slots.insert(7, 0);
+        FastSlam::from_snapshot(snap, f.updater().clone()).unwrap()
+    }
+
+    fn record(z: &[[f64; 2]]) -> Record {
+        Record {
+            robot: "r".into(),
+            seq: 0,
+            t: 1.0,
+            motion: None,
+            landmarks: z
+                .iter()
+                .map(|z| LandmarkObservation {
+                    id: Some(7),
+                    z: z.to_vec(),
+                })
+                .collect(),
+            robots: Vec::new(),
+        }
+    }
+
+    fn offsets() -> Vec<f64> {
+        // Range innovations 0..1.2 m against S_rr = 0.02: squared Mahalanobis distances from
+        // 0 to 72, across the gate (9.21) and the new-landmark threshold (13.8).
+        (0..25).map(|k| 0.05 * k as f64).collect()
+    }
+
+    #[test]
+    fn weight_falls_monotonically_with_the_mahalanobis_distance() {
+        for version in [FastSlamVersion::V1, FastSlamVersion::V2] {
+            for association in [Association::Known, Association::Unknown] {
+                let mut f = filter_with_offsets(version, association, &offsets());
+                f.step(&record(&[[2.0, 0.0]])).unwrap();
+                let w: Vec<f64> = f.particles().iter().map(|p| p.log_w).collect();
+                for k in 1..w.len() {
+                    assert!(
+                        w[k] < w[k - 1] || (w[k] - w[k - 1]).abs() < 1e-9,
+                        "{version:?} {association:?}: weight rises from offset {} to {}: {w:?}",
+                        offsets()[k - 1],
+                        offsets()[k],
+                    );
+                }
+                // Strictly falling while the Gaussian term dominates the clutter term.
+                assert!(w[0] > w[6] + 2.0 && w[3] > w[5] + 0.5, "{w:?}");
+                // The far particles are explained by clutter alike: the weight flattens.
+                assert!((w[23] - w[24]).abs() < 1e-6, "{w:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn weights_are_the_same_in_fastslam_1_and_2_without_motion_noise() {
+        for association in [Association::Known, Association::Unknown] {
+            let run = |version| {
+                let mut f = filter_with_offsets(version, association, &offsets());
+                f.step(&record(&[[2.0, 0.0], [3.0, 0.5]])).unwrap();
+                f.particles().iter().map(|p| p.log_w).collect::<Vec<_>>()
+            };
+            let (w1, w2) = (run(FastSlamVersion::V1), run(FastSlamVersion::V2));
+            for (a, b) in w1.iter().zip(&w2) {
+                assert!((a - b).abs() < 1e-9, "{association:?}: {w1:?} vs {w2:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn one_landmark_explains_at_most_one_observation_of_a_record() {
+        for version in [FastSlamVersion::V1, FastSlamVersion::V2] {
+            let mut f = filter_with_offsets(version, Association::Unknown, &[0.0; 4]);
+            // Both observations gate with the landmark at (2, 0); the second one is too close
+            // to it to start a landmark: it is ambiguous.
+            f.step(&record(&[[2.0, 0.0], [2.05, 0.01]])).unwrap();
+            for p in f.particles() {
+                assert_eq!(p.map.len(), 1);
+                assert_eq!(p.map.get(0).unwrap().hits, 6);
+            }
+            assert_eq!(f.stats().ignored_observations, 4);
+            // Two distinct new landmarks in one record, and two sightings of one new landmark.
+            let mut f = filter_with_offsets(version, Association::Unknown, &[0.0; 4]);
+            f.step(&record(&[[5.0, 1.0], [5.0, -1.0], [5.01, -1.0]]))
+                .unwrap();
+            for p in f.particles() {
+                assert_eq!(p.map.len(), 3, "{:?}", p.map);
+            }
+        }
+    }
+
+    #[test]
+    fn tentative_landmarks_are_not_reported_until_confirmed() {
+        let mut f = filter_with_offsets(FastSlamVersion::V2, Association::Unknown, &[0.0; 4]);
+        let far = [6.0, 1.0];
+        f.step(&record(&[far])).unwrap();
+        assert_eq!(f.particles()[0].map.len(), 2);
+        assert_eq!(f.estimate().landmarks.len(), 1, "the new one is tentative");
+        for k in 1..3 {
+            let mut rec = record(&[far]);
+            rec.seq = k;
+            rec.t = 1.0 + k as f64;
+            f.step(&rec).unwrap();
+        }
+        assert_eq!(
+            f.estimate().landmarks.len(),
+            2,
+            "confirmed after 3 sightings"
+        );
+    }
+
+    #[test]
+    fn a_degenerate_proposal_falls_back_to_the_motion_model() {
+        let f = filter_with_offsets(FastSlamVersion::V2, Association::Known, &[0.0]);
+        let cfg = f.config().clone();
+        let obs = [Obs {
+            z: [2.0, 0.0, 0.0],
+            id: Some(7),
+            slot: Some(0),
+        }];
+        let ctx = StepCtx {
+            cfg: &cfg,
+            updater: f.updater().as_ref(),
+            robot: 0,
+            inc: Pose2::default(),
+            var: [0.0; 3],
+            std: [0.0; 3],
+            obs: &obs,
+            sightings: &[],
+            step: 0,
+            known_len: 1,
+            gate: 9.0,
+            new_landmark: 16.0,
+            clutter: -10.0,
+            sighting_clutter: -10.0,
+        };
+        let q = q_matrix(&cfg);
+        let map = &f.particles()[0].map;
+        let mut acts = [Action::Update(0)];
+        let mut rng = stream(0, 0, 0);
+        // An indefinite pose covariance: no Cholesky factor, so no proposal (never a
+        // noise-free sample).
+        let bad = Matrix3::from_diagonal(&Vector3::new(-1.0, 0.01, 0.01));
+        let got = propose(
+            &ctx,
+            &q,
+            map,
+            &Pose2::default(),
+            &bad,
+            &mut acts,
+            &[0.0],
+            &mut rng,
+        );
+        assert!(got.is_none());
+        let ok = Matrix3::from_diagonal(&Vector3::new(0.01, 0.01, 0.001));
+        let got = propose(
+            &ctx,
+            &q,
+            map,
+            &Pose2::default(),
+            &ok,
+            &mut acts,
+            &[0.0],
+            &mut rng,
+        );
+        assert!(got.is_some());
+        // A zero covariance is a point proposal: the mean itself.
+        let (pose, _) = propose(
+            &ctx,
+            &q,
+            map,
+            &Pose2::default(),
+            &Matrix3::zeros(),
+            &mut acts,
+            &[0.0],
+            &mut rng,
+        )
+        .unwrap();
+        assert_eq!(pose, Pose2::default());
+    }
 }

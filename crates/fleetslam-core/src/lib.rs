@@ -38,6 +38,7 @@ pub mod pose;
 pub mod resample;
 pub mod rng;
 pub mod sensor;
+pub mod stats;
 pub mod updater;
 
 pub use config::FilterConfig;

@@ -190,6 +190,11 @@ pub struct MotionNoise {
     pub trans_per_sqrt_s: f64,
     /// Heading random walk [rad/sqrt(s)]. Default 0.01.
     pub rot_per_sqrt_s: f64,
+    /// Longest time [s] one record's random walk covers. Default 1.0. A record that follows
+    /// a long silence (a paused robot, a gap in the log, the first record long after the
+    /// run's start) adds at most this much random-walk noise: the walk models jitter and
+    /// slip while moving, which the record's own motion bounds, not the length of the gap.
+    pub random_walk_max_dt: f64,
 }
 
 impl Default for MotionNoise {
@@ -201,6 +206,7 @@ impl Default for MotionNoise {
             rot_per_m: 0.02,
             trans_per_sqrt_s: 0.01,
             rot_per_sqrt_s: 0.01,
+            random_walk_max_dt: 1.0,
         }
     }
 }
@@ -214,6 +220,7 @@ impl MotionNoise {
             ("rot_per_m", self.rot_per_m),
             ("trans_per_sqrt_s", self.trans_per_sqrt_s),
             ("rot_per_sqrt_s", self.rot_per_sqrt_s),
+            ("random_walk_max_dt", self.random_walk_max_dt),
         ];
         for (name, v) in fields {
             if !(v.is_finite() && v >= 0.0) {
@@ -225,11 +232,12 @@ impl MotionNoise {
         Ok(())
     }
 
-    /// Variances of (longitudinal, lateral, heading) noise of `inc` over `dt` seconds.
+    /// Variances of (longitudinal, lateral, heading) noise of `inc` over `dt` seconds (the
+    /// random walk over at most `random_walk_max_dt` of them).
     #[inline]
     pub fn variances(&self, inc: &Pose2, dt: f64) -> [f64; 3] {
         let d = inc.x.hypot(inc.y);
-        let dt = dt.max(0.0);
+        let dt = dt.clamp(0.0, self.random_walk_max_dt);
         let rw_t = self.trans_per_sqrt_s * self.trans_per_sqrt_s * dt;
         [
             (self.trans_per_m * d).powi(2) + rw_t,
@@ -296,6 +304,17 @@ mod tests {
         assert!((t.theta - vc / 2.83 * steer.tan()).abs() < 1e-9);
         // Turning left moves the laser (ahead of the axle) to the left.
         assert!(t.y > 0.0);
+    }
+
+    #[test]
+    fn random_walk_is_capped_per_record() {
+        let n = MotionNoise::default();
+        let inc = Pose2::new(0.1, 0.0, 0.0);
+        assert_eq!(
+            n.variances(&inc, 1e12),
+            n.variances(&inc, n.random_walk_max_dt)
+        );
+        assert!(n.variances(&inc, 0.5)[0] < n.variances(&inc, 1.0)[0]);
     }
 
     #[test]

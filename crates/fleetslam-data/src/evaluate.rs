@@ -50,6 +50,26 @@
 //! covariance otherwise (expected value 3); rows whose covariance is not positive definite
 //! (e.g. unknown, all zero) are skipped.
 //!
+//! Beside this capped matching, `landmark_rmse_optimal` matches every estimate landmark
+//! with a truth landmark one to one (as many pairs as the smaller side has) minimising the
+//! sum of squared distances (Hungarian / Kuhn-Munkres, no radius, ids ignored): a map with
+//! the right number of landmarks in the wrong places cannot hide behind the radius.
+//!
+//! With `group_within = g`, truth landmarks closer than `g` to each other (transitively)
+//! count as one group, placed at the mean of its members: without ids no sensor of a given
+//! noise separates landmarks much closer than that noise, so the right map holds one
+//! landmark per group. Missed and spurious counts are then over groups.
+//!
+//! # Relative pose error
+//!
+//! For each matched pose `i` of a robot, `j` is the first later pose at which the truth has
+//! travelled at least `rpe_distance` metres; with `Δe = e_i⁻¹ e_j` and `Δg = g_i⁻¹ g_j`
+//! (relative poses, independent of any alignment):
+//!
+//! ```text
+//! RPE RMSE = sqrt(mean_i |Δe_i.xy − Δg_i.xy|²),  RPE heading RMSE = sqrt(mean_i wrap(Δe_i.θ − Δg_i.θ)²)
+//! ```
+//!
 //! Estimates of runs without known data association must leave the landmark ids empty:
 //! ids that merely number the filter's own landmarks would be matched to the truth's ids.
 
@@ -119,6 +139,12 @@ pub struct EvalOptions {
     /// Largest truth gap interpolated across (s). Default 0.5. Infinity interpolates across
     /// any gap; a negative or NaN value only keeps poses that fall on truth samples.
     pub max_truth_gap: f64,
+    /// Truth landmarks closer than this to each other (m, transitively) count as one group
+    /// at the members' mean (module docs). Default `None`: every landmark on its own.
+    pub group_within: Option<f64>,
+    /// Distance the truth travels between the two poses of a relative pose error (m).
+    /// Default 1.0.
+    pub rpe_distance: f64,
 }
 
 impl Default for EvalOptions {
@@ -127,6 +153,8 @@ impl Default for EvalOptions {
             alignment: None,
             landmark_match_radius: 1.0,
             max_truth_gap: 0.5,
+            group_within: None,
+            rpe_distance: 1.0,
         }
     }
 }
@@ -151,6 +179,19 @@ pub struct RobotEval {
     /// Root mean square heading error (rad).
     #[serde(with = "nan_as_null")]
     pub heading_rmse: f64,
+    /// Relative pose error over `rpe_distance` (module docs): RMSE of the position part (m).
+    #[serde(with = "nan_as_null", default = "nan")]
+    pub rpe_rmse: f64,
+    /// RMSE of the heading part of the relative pose error (rad).
+    #[serde(with = "nan_as_null", default = "nan")]
+    pub rpe_heading_rmse: f64,
+    /// Relative poses the RPE averages over.
+    #[serde(default)]
+    pub rpe_count: usize,
+}
+
+fn nan() -> f64 {
+    f64::NAN
 }
 
 /// Errors of the whole team and of the map.
@@ -182,6 +223,22 @@ pub struct TeamEval {
     pub landmark_nees: Option<f64>,
     /// Landmarks the NEES averages over.
     pub landmark_nees_count: usize,
+    /// Largest distance of a landmark pair matched within the radius (m).
+    #[serde(default)]
+    pub landmark_match_max: Option<f64>,
+    /// Landmark RMSE of the optimal one-to-one matching without radius (m; module docs).
+    #[serde(default)]
+    pub landmark_rmse_optimal: Option<f64>,
+    /// Pairs of that matching: the smaller of the estimate's and the truth's counts.
+    #[serde(default)]
+    pub landmarks_optimal_pairs: usize,
+    /// Relative pose error over all robots (m, rad) and its count.
+    #[serde(with = "nan_as_null", default = "nan")]
+    pub rpe_rmse: f64,
+    #[serde(with = "nan_as_null", default = "nan")]
+    pub rpe_heading_rmse: f64,
+    #[serde(default)]
+    pub rpe_count: usize,
 }
 
 /// The result of [`evaluate`]; serialises with the keys `robots.<id>.ate_rmse`,
@@ -196,6 +253,15 @@ pub struct Evaluation {
     /// The transform applied to the estimate, `[tx, ty, phi]` (`x -> R(phi) x + t`); `None`
     /// when nothing was applied.
     pub transform: Option<[f64; 3]>,
+    /// The `group_within` distance used (m) and the number of truth landmark groups it
+    /// formed; absent when landmarks were not grouped.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub group_within: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub landmark_groups: Option<usize>,
+    /// The distance of the relative pose error (m).
+    #[serde(default)]
+    pub rpe_distance: f64,
 }
 
 /// Serialises NaN as `null` and reads `null` back as NaN.
@@ -532,6 +598,130 @@ fn match_landmarks(est: &[LandmarkRow], truth: &[LandmarkRow], radius: f64) -> V
     pairs
 }
 
+/// Truth landmarks grouped by single linkage within `within` metres, each group replaced
+/// by its members' mean (keeping the id of a lone member only).
+fn group_landmarks(truth: &[LandmarkRow], within: f64) -> Vec<LandmarkRow> {
+    let n = truth.len();
+    let mut parent: Vec<usize> = (0..n).collect();
+    fn root(parent: &mut [usize], mut i: usize) -> usize {
+        while parent[i] != i {
+            parent[i] = parent[parent[i]];
+            i = parent[i];
+        }
+        i
+    }
+    for i in 0..n {
+        for j in i + 1..n {
+            if landmark_distance(&truth[i], &truth[j]) < within {
+                let (a, b) = (root(&mut parent, i), root(&mut parent, j));
+                parent[a.max(b)] = a.min(b);
+            }
+        }
+    }
+    let mut groups: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
+    for i in 0..n {
+        let r = root(&mut parent, i);
+        groups.entry(r).or_default().push(i);
+    }
+    groups
+        .values()
+        .map(|members| {
+            let k = members.len() as f64;
+            let mut mean = [0.0; 3];
+            let mut cov = [0.0; 6];
+            for &m in members {
+                for (a, b) in mean.iter_mut().zip(&truth[m].mean) {
+                    *a += b / k;
+                }
+                for (a, b) in cov.iter_mut().zip(&truth[m].cov) {
+                    *a += b / k;
+                }
+            }
+            LandmarkRow {
+                id: if members.len() == 1 {
+                    truth[members[0]].id
+                } else {
+                    None
+                },
+                mean,
+                cov,
+            }
+        })
+        .collect()
+}
+
+/// The one-to-one matching of `est` and `truth` landmarks (ids ignored, no radius) that
+/// minimises the sum of squared distances (Kuhn-Munkres), as (estimate, truth) pairs.
+fn optimal_landmark_pairs(est: &[LandmarkRow], truth: &[LandmarkRow]) -> Vec<(usize, usize)> {
+    use pathfinding::kuhn_munkres::kuhn_munkres_min;
+    use pathfinding::matrix::Matrix;
+    if est.is_empty() || truth.is_empty() {
+        return Vec::new();
+    }
+    // Squared distances in units of 1e-8 m² (0.1 mm resolution), as integers.
+    let cost = |a: &LandmarkRow, b: &LandmarkRow| -> i64 {
+        (landmark_distance(a, b).powi(2) * 1e8).round().min(1e17) as i64
+    };
+    let (rows, cols, swap) = if est.len() <= truth.len() {
+        (est, truth, false)
+    } else {
+        (truth, est, true)
+    };
+    let m = Matrix::from_fn(rows.len(), cols.len(), |(i, j)| cost(&rows[i], &cols[j]));
+    let (_, assign) = kuhn_munkres_min(&m);
+    assign
+        .into_iter()
+        .enumerate()
+        .map(|(i, j)| if swap { (j, i) } else { (i, j) })
+        .collect()
+}
+
+/// Relative pose errors of one robot's (estimate, truth) pairs in time order: the position
+/// and heading parts, one per pose that has a later pose `distance` metres further along
+/// the truth.
+fn relative_errors(pairs: &[(Pose2, Pose2)], distance: f64) -> Vec<(f64, f64)> {
+    let n = pairs.len();
+    let mut along = Vec::with_capacity(n);
+    let mut total = 0.0;
+    for k in 0..n {
+        if k > 0 {
+            total += pairs[k].1.distance(&pairs[k - 1].1);
+        }
+        along.push(total);
+    }
+    let mut out = Vec::new();
+    let mut j = 0;
+    for i in 0..n {
+        j = j.max(i + 1);
+        while j < n && along[j] - along[i] < distance {
+            j += 1;
+        }
+        if j >= n {
+            break;
+        }
+        let de = pairs[j].0.relative_to(&pairs[i].0);
+        let dg = pairs[j].1.relative_to(&pairs[i].1);
+        out.push((
+            (de.x - dg.x).hypot(de.y - dg.y),
+            wrap_angle(de.theta - dg.theta),
+        ));
+    }
+    out
+}
+
+fn rms(v: impl Iterator<Item = f64>) -> (f64, usize) {
+    let (mut n, mut sq) = (0usize, 0.0);
+    for x in v {
+        n += 1;
+        sq += x * x;
+    }
+    if n == 0 {
+        (f64::NAN, 0)
+    } else {
+        ((sq / n as f64).sqrt(), n)
+    }
+}
+
 /// Evaluates `estimate` against `truth` (see the module docs). `shared_frame` says whether
 /// the estimate is in the truth's frame, which decides the automatic alignment.
 pub fn evaluate(
@@ -593,10 +783,16 @@ pub fn evaluate(
         }
     }
 
+    let rpe: BTreeMap<&str, Vec<(f64, f64)>> = matched
+        .iter()
+        .map(|(robot, (_, pairs))| (*robot, relative_errors(pairs, opts.rpe_distance)))
+        .collect();
     let robots = matched
         .iter()
         .map(|(robot, (n, pairs))| {
             let s = stats(pairs.iter().copied());
+            let (rpe_rmse, rpe_count) = rms(rpe[robot].iter().map(|e| e.0));
+            let (rpe_heading_rmse, _) = rms(rpe[robot].iter().map(|e| e.1));
             let eval = RobotEval {
                 estimate_poses: *n,
                 matched_poses: s.n,
@@ -604,10 +800,15 @@ pub fn evaluate(
                 ate_mean: s.mean,
                 ate_max: s.max,
                 heading_rmse: s.heading_rmse,
+                rpe_rmse,
+                rpe_heading_rmse,
+                rpe_count,
             };
             (robot.to_string(), eval)
         })
         .collect();
+    let (team_rpe, team_rpe_count) = rms(rpe.values().flatten().map(|e| e.0));
+    let (team_rpe_heading, _) = rms(rpe.values().flatten().map(|e| e.1));
     let team_stats = stats(matched.values().flat_map(|(_, p)| p.iter().copied()));
 
     // Landmarks, in the truth's frame.
@@ -617,17 +818,26 @@ pub fn evaluate(
         .filter(|r| r.mean.iter().all(|v| v.is_finite()))
         .map(|r| tf.apply_landmark(r))
         .collect();
-    let pairs = match_landmarks(&est_landmarks, &truth.landmarks, radius);
-    let landmark_rmse = (!truth.landmarks.is_empty() && !pairs.is_empty()).then(|| {
-        let sq: f64 = pairs
-            .iter()
-            .map(|&(i, j)| landmark_distance(&est_landmarks[i], &truth.landmarks[j]).powi(2))
-            .sum();
+    let group_within = opts.group_within.filter(|g| g.is_finite() && *g > 0.0);
+    let truth_landmarks = match group_within {
+        Some(g) => group_landmarks(&truth.landmarks, g),
+        None => truth.landmarks.clone(),
+    };
+    let pairs = match_landmarks(&est_landmarks, &truth_landmarks, radius);
+    let dist = |&(i, j): &(usize, usize)| landmark_distance(&est_landmarks[i], &truth_landmarks[j]);
+    let landmark_rmse = (!truth_landmarks.is_empty() && !pairs.is_empty()).then(|| {
+        let sq: f64 = pairs.iter().map(|p| dist(p).powi(2)).sum();
         (sq / pairs.len() as f64).sqrt()
+    });
+    let landmark_match_max = pairs.iter().map(dist).reduce(f64::max);
+    let optimal = optimal_landmark_pairs(&est_landmarks, &truth_landmarks);
+    let landmark_rmse_optimal = (!optimal.is_empty()).then(|| {
+        let sq: f64 = optimal.iter().map(|p| dist(p).powi(2)).sum();
+        (sq / optimal.len() as f64).sqrt()
     });
     let nees_values: Vec<f64> = pairs
         .iter()
-        .filter_map(|&(i, j)| nees(&est_landmarks[i], &truth.landmarks[j]))
+        .filter_map(|&(i, j)| nees(&est_landmarks[i], &truth_landmarks[j]))
         .collect();
     let landmark_nees = (!nees_values.is_empty())
         .then(|| nees_values.iter().sum::<f64>() / nees_values.len() as f64);
@@ -642,13 +852,22 @@ pub fn evaluate(
             heading_rmse: team_stats.heading_rmse,
             landmark_rmse,
             landmarks_matched: pairs.len(),
-            landmarks_missed: truth.landmarks.len() - pairs.len(),
+            landmarks_missed: truth_landmarks.len() - pairs.len(),
             landmarks_spurious: est_landmarks.len() - pairs.len(),
             landmark_nees,
             landmark_nees_count: nees_values.len(),
+            landmark_match_max,
+            landmark_rmse_optimal,
+            landmarks_optimal_pairs: optimal.len(),
+            rpe_rmse: team_rpe,
+            rpe_heading_rmse: team_rpe_heading,
+            rpe_count: team_rpe_count,
         },
         alignment: alignment.as_str().to_string(),
         transform: transform.map(|t| [t.tx, t.ty, t.phi]),
+        group_within,
+        landmark_groups: group_within.map(|_| truth_landmarks.len()),
+        rpe_distance: opts.rpe_distance,
     }
 }
 
@@ -689,13 +908,15 @@ impl fmt::Display for Evaluation {
             writeln!(
                 f,
                 "robot {robot:<width$}  ATE rmse {} m, mean {} m, max {} m, heading rmse {} deg \
-                 ({}/{} poses)",
+                 ({}/{} poses); RPE {} m, {} deg",
                 Num(r.ate_rmse, 3),
                 Num(r.ate_mean, 3),
                 Num(r.ate_max, 3),
                 Num(r.heading_rmse.to_degrees(), 2),
                 r.matched_poses,
                 r.estimate_poses,
+                Num(r.rpe_rmse, 3),
+                Num(r.rpe_heading_rmse.to_degrees(), 2),
             )?;
         }
         let t = &self.team;
@@ -709,6 +930,21 @@ impl fmt::Display for Evaluation {
             Num(t.heading_rmse.to_degrees(), 2),
             t.matched_poses,
         )?;
+        writeln!(
+            f,
+            "RPE over {} m: rmse {} m, heading rmse {} deg ({} relative poses)",
+            Num(self.rpe_distance, 2),
+            Num(t.rpe_rmse, 3),
+            Num(t.rpe_heading_rmse.to_degrees(), 2),
+            t.rpe_count,
+        )?;
+        if let (Some(g), Some(n)) = (self.group_within, self.landmark_groups) {
+            writeln!(
+                f,
+                "landmark truth grouped within {} m: {n} groups",
+                Num(g, 3)
+            )?;
+        }
         let total = t.landmarks_matched + t.landmarks_missed;
         match t.landmark_rmse {
             Some(rmse) => write!(
@@ -730,8 +966,19 @@ impl fmt::Display for Evaluation {
                 t.landmarks_spurious
             )?,
         }
+        if let Some(m) = t.landmark_match_max {
+            write!(f, ", worst {} m", Num(m, 3))?;
+        }
         if let Some(nees) = t.landmark_nees {
             write!(f, ", NEES {} over {}", Num(nees, 2), t.landmark_nees_count)?;
+        }
+        if let Some(o) = t.landmark_rmse_optimal {
+            write!(
+                f,
+                "\nlandmarks, optimal matching without radius: rmse {} m over {} pairs",
+                Num(o, 3),
+                t.landmarks_optimal_pairs
+            )?;
         }
         writeln!(f)
     }
@@ -1033,6 +1280,98 @@ mod tests {
         };
         let t = evaluate(&est, &truth, true, &opts).team;
         assert_eq!((t.landmarks_matched, t.landmarks_spurious), (2, 1));
+    }
+
+    #[test]
+    fn optimal_matching_has_no_radius_and_minimises_squared_error() {
+        let truth = Truth {
+            landmarks: vec![row(None, 0.0, 0.0), row(None, 10.0, 0.0)],
+            ..Truth::default()
+        };
+        // Greedy nearest-first would pair (4, 0) with truth (0, 0) (4 m) and leave (-3, 0)
+        // 13 m from truth (10, 0); the optimum pairs them the other way round only if it is
+        // cheaper: 6² + 3² = 45 < 4² + 13² = 185.
+        let est = Truth {
+            landmarks: vec![
+                row(None, 4.0, 0.0),
+                row(None, -3.0, 0.0),
+                row(None, 50.0, 0.0),
+            ],
+            ..Truth::default()
+        };
+        let t = evaluate(&est, &truth, true, &EvalOptions::default()).team;
+        assert_eq!(t.landmarks_matched, 0, "nothing within the 1 m radius");
+        assert_eq!(t.landmarks_optimal_pairs, 2);
+        assert!((t.landmark_rmse_optimal.unwrap() - (45.0f64 / 2.0).sqrt()).abs() < 1e-6);
+    }
+
+    #[test]
+    fn grouped_truth_landmarks_match_by_their_centre() {
+        let truth = Truth {
+            landmarks: vec![
+                row(Some(1), 0.0, 0.0),
+                row(Some(2), 0.2, 0.0),
+                row(Some(3), 0.4, 0.0),
+                row(Some(4), 5.0, 0.0),
+            ],
+            ..Truth::default()
+        };
+        let est = Truth {
+            landmarks: vec![row(None, 0.2, 0.1), row(None, 5.0, 0.1)],
+            ..Truth::default()
+        };
+        let opts = EvalOptions {
+            group_within: Some(0.3),
+            landmark_match_radius: 0.3,
+            ..EvalOptions::default()
+        };
+        let ev = evaluate(&est, &truth, true, &opts);
+        assert_eq!(ev.landmark_groups, Some(2));
+        let t = &ev.team;
+        assert_eq!(
+            (
+                t.landmarks_matched,
+                t.landmarks_missed,
+                t.landmarks_spurious
+            ),
+            (2, 0, 0)
+        );
+        assert!((t.landmark_match_max.unwrap() - 0.1).abs() < 1e-12);
+        // Ungrouped, the same map misses two of four.
+        let t = evaluate(&est, &truth, true, &EvalOptions::default()).team;
+        assert_eq!((t.landmarks_matched, t.landmarks_missed), (2, 2));
+        assert!(
+            evaluate(&est, &truth, true, &opts)
+                .to_string()
+                .contains("2 groups")
+        );
+    }
+
+    #[test]
+    fn relative_pose_error_ignores_a_constant_offset_and_sees_drift() {
+        // The truth drives along x at 1 m/s; one estimate is shifted by a constant, another
+        // drifts 0.1 m per metre sideways.
+        let truth_pts: Vec<(f64, f64, f64, f64)> =
+            (0..=10).map(|k| (k as f64, k as f64, 0.0, 0.0)).collect();
+        let truth = one_robot(traj(&truth_pts));
+        let shifted: Vec<_> = truth_pts
+            .iter()
+            .map(|&(t, x, y, th)| (t, x + 2.0, y + 1.0, th))
+            .collect();
+        let ev = evaluate(&one_robot(traj(&shifted)), &truth, true, &no_alignment());
+        assert!(ev.team.rpe_rmse.abs() < 1e-12 && ev.team.ate_rmse > 2.0);
+        assert_eq!(ev.team.rpe_count, 10);
+        let drift: Vec<_> = truth_pts
+            .iter()
+            .map(|&(t, x, _, th)| (t, x, 0.1 * x, th))
+            .collect();
+        let ev = evaluate(&one_robot(traj(&drift)), &truth, true, &no_alignment());
+        assert!(
+            (ev.team.rpe_rmse - 0.1).abs() < 1e-12,
+            "{}",
+            ev.team.rpe_rmse
+        );
+        assert!((ev.robots["1"].rpe_rmse - 0.1).abs() < 1e-12);
     }
 
     #[test]

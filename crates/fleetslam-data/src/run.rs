@@ -45,6 +45,9 @@ pub struct RunMetrics {
     pub landmarks_created: u64,
     pub landmarks_removed: u64,
     pub outliers: u64,
+    /// FastSLAM 2.0 particle steps whose proposal was degenerate and fell back to 1.0's.
+    #[serde(default)]
+    pub proposal_fallbacks: u64,
     pub final_ess: f64,
     /// Records of robots without a known start pose, not applied.
     pub skipped_records: u64,
@@ -90,9 +93,21 @@ pub struct RunOutput {
     pub final_estimate: Estimate,
 }
 
-/// Start time of a robot whose header gives none: before any record. Trajectories get no
-/// start point for it.
-const UNKNOWN_T0: f64 = -1e12;
+/// Start time of a robot: its header's `t0`, or else the time of its first record (its
+/// clock starts there, so that its first record's random walk covers no silence before it;
+/// 0 for a robot without records). Trajectories get a start point only from a header's `t0`.
+fn start_time(log: &Log, r: &fleetslam_core::log::RobotStart) -> f64 {
+    if let Some(t) = r.t0 {
+        return t;
+    }
+    let first = log
+        .records
+        .iter()
+        .filter(|rec| rec.robot == r.id)
+        .map(|rec| rec.t)
+        .fold(f64::INFINITY, f64::min);
+    if first.is_finite() { first } else { 0.0 }
+}
 
 /// The pose a trajectory records for robot `r`.
 fn pose_of(slam: &FastSlam, which: TrajectoryEstimate, r: usize) -> fleetslam_core::Pose2 {
@@ -109,8 +124,7 @@ pub fn add_header_robots(slam: &mut FastSlam, log: &Log) -> Result<bool, FilterE
     for r in &log.header.robots {
         match &r.start {
             Some(start) => {
-                let t0 = r.t0.map_or(UNKNOWN_T0, |t| t.max(UNKNOWN_T0));
-                slam.add_robot(&r.id, start, t0)?;
+                slam.add_robot(&r.id, start, start_time(log, r))?;
             }
             None => all_known = false,
         }
@@ -135,7 +149,12 @@ pub fn run_log(
         .map(|r| (r.id.clone(), Vec::new()))
         .collect();
     for r in slam.robots() {
-        if r.last_t > UNKNOWN_T0 {
+        if log
+            .header
+            .robots
+            .iter()
+            .any(|h| h.id == r.id && h.t0.is_some())
+        {
             let i = slam.robot_index(&r.id).expect("robot just added");
             let pose = pose_of(slam, which, i);
             trajectories
@@ -217,6 +236,7 @@ fn finish(
         landmarks_created: stats.landmarks_created,
         landmarks_removed: stats.landmarks_removed,
         outliers: stats.outliers,
+        proposal_fallbacks: stats.proposal_fallbacks,
         final_ess: est.ess,
         skipped_records: skipped,
         shared_frame,
@@ -261,8 +281,7 @@ pub fn run_log_joining(
     for r in &log.header.robots {
         match &r.start {
             Some(start) if !is_unknown(&r.id) => {
-                let t0 = r.t0.map_or(UNKNOWN_T0, |t| t.max(UNKNOWN_T0));
-                run.add_robot(&r.id, start, t0)?;
+                run.add_robot(&r.id, start, start_time(log, r))?;
                 any_known = true;
             }
             _ => run.add_unknown_robot(&r.id)?,
@@ -279,7 +298,12 @@ pub fn run_log_joining(
         .map(|r| (r.id.clone(), Vec::new()))
         .collect();
     for r in run.slam().robots() {
-        if r.last_t > UNKNOWN_T0 {
+        if log
+            .header
+            .robots
+            .iter()
+            .any(|h| h.id == r.id && h.t0.is_some())
+        {
             let i = run.slam().robot_index(&r.id).expect("robot just added");
             let pose = pose_of(run.slam(), which, i);
             trajectories

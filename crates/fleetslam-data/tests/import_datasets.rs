@@ -12,6 +12,11 @@ fn dataset(name: &str) -> Option<std::path::PathBuf> {
     if p.is_dir() {
         Some(p)
     } else {
+        assert!(
+            !std::env::var("FLEETSLAM_REQUIRE_DATA").is_ok_and(|v| v == "1"),
+            "{} is missing and FLEETSLAM_REQUIRE_DATA=1",
+            p.display()
+        );
         println!("skipped: {} is missing", p.display());
         None
     }

@@ -284,6 +284,7 @@ impl Default for RtpfExperiment {
                 rot_per_m: 0.05,
                 trans_per_sqrt_s: 0.01,
                 rot_per_sqrt_s: 0.01,
+                random_walk_max_dt: 1.0,
             },
             rtpf: RtpfParams::default(),
             resample_threshold: 0.5,

@@ -77,6 +77,7 @@ impl LandmarkSet {
             landmarks: best
                 .map
                 .iter()
+                .filter(|(_, l)| slam.config().is_confirmed(l))
                 .map(|(_, l)| MapLandmark {
                     id: l.id,
                     gaussian: l.gaussian,

@@ -30,6 +30,7 @@ fn noise() -> MotionNoise {
         rot_per_m: 0.02,
         trans_per_sqrt_s: 0.01,
         rot_per_sqrt_s: 0.01,
+        random_walk_max_dt: 1.0,
     }
 }
 

@@ -103,6 +103,7 @@ pub fn suggested_motion_noise() -> MotionNoise {
         rot_per_m: 0.02,
         trans_per_sqrt_s: 0.05,
         rot_per_sqrt_s: 0.01,
+        ..MotionNoise::default()
     }
 }
 
@@ -410,6 +411,10 @@ mod tests {
         if p.is_dir() {
             Some(p)
         } else {
+            assert!(
+                !std::env::var("FLEETSLAM_REQUIRE_DATA").is_ok_and(|v| v == "1"),
+                "{DATA} is missing and FLEETSLAM_REQUIRE_DATA=1"
+            );
             println!("skipped: {DATA} is missing");
             None
         }

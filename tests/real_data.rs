@@ -6,7 +6,10 @@ use fleetslam_core::filter::FastSlam;
 use fleetslam_data::evaluate::{EvalOptions, evaluate};
 use fleetslam_data::import::{MrclamOptions, VictoriaOptions, import_mrclam, import_victoria_park};
 use fleetslam_data::run::{TrajectoryEstimate, run_log};
-use fleetslam_suite::dataset;
+use fleetslam_suite::{dataset, experiments};
+
+/// Team ATE bound of the 300 s no-ids slice (200 particles, seed 1; measured 0.33 m).
+const NO_IDS_ATE_BOUND: f64 = 0.4;
 
 #[test]
 fn mrclam_five_robots_shared_map_500_particles() {
@@ -27,15 +30,16 @@ fn mrclam_five_robots_shared_map_500_particles() {
     let ev = evaluate(&out.estimate, &imp.truth, true, &EvalOptions::default());
     println!("{ev}");
     assert_eq!(ev.robots.len(), 5);
-    // The issue's bound is 0.5 m on the full run; dead reckoning is about 2.8 m there.
-    assert!(ev.team.ate_rmse < 0.5, "team ATE {} m", ev.team.ate_rmse);
+    // Measured 0.213 m (landmarks 0.181 m, 15/15); dead reckoning is about 2.8 m on the full
+    // run.
+    assert!(ev.team.ate_rmse < 0.3, "team ATE {} m", ev.team.ate_rmse);
     for (id, r) in &ev.robots {
         assert!(r.ate_rmse < 0.8, "robot {id} ATE {} m", r.ate_rmse);
     }
     let lm = ev.team.landmark_rmse.expect("MRCLAM has landmark truth");
-    assert!(lm < 0.5, "landmark RMSE {lm} m");
+    assert!(lm < 0.25, "landmark RMSE {lm} m");
     assert!(
-        ev.team.landmarks_matched >= 12,
+        ev.team.landmarks_matched == 15,
         "{} landmarks matched",
         ev.team.landmarks_matched
     );
@@ -71,26 +75,31 @@ fn mrclam_dead_reckoning_is_far_worse() {
 }
 
 #[test]
-fn mrclam_without_ids_unknown_association_runs() {
+fn mrclam_without_ids_maps_each_landmark_group_once() {
+    // Without ids the 15 barcodes form 6 groups whose members (0.18-0.25 m apart) no
+    // sensor of this noise tells apart: the right map has one landmark per group.
     let Some(dir) = dataset("mrclam-dataset6") else {
         return;
     };
-    let opts = MrclamOptions {
-        duration: Some(120.0),
-        no_ids: true,
-        ..Default::default()
-    };
-    let imp = import_mrclam(&dir, &opts).unwrap();
-    let mut cfg = FilterConfig::from_header(&imp.log.header);
+    let imp = experiments::mrclam(&dir, true, Some(300.0));
+    let cfg = FilterConfig::from_header(&imp.log.header);
     assert_eq!(cfg.association, Association::Unknown);
-    cfg.particles = 100;
-    let mut slam = FastSlam::new(cfg).unwrap();
-    let out = run_log(&mut slam, &imp.log, TrajectoryEstimate::Mean, |_, _| {}).unwrap();
-    assert!(out.estimate.landmarks.iter().all(|l| l.id.is_none()));
-    let ev = evaluate(&out.estimate, &imp.truth, true, &EvalOptions::default());
-    println!("{ev}");
-    assert!(ev.team.landmarks_matched >= 5, "{ev}");
-    assert!(ev.team.ate_rmse.is_finite());
+    let opts = experiments::mrclam_eval_options(true);
+    let (ev, metrics) =
+        experiments::run_and_evaluate(&imp.log, &imp.truth, 200, 1, FastSlamVersion::V2, &opts);
+    println!(
+        "{ev}
+{metrics:?}"
+    );
+    assert_eq!(ev.landmark_groups, Some(6));
+    let t = &ev.team;
+    // Measured (seed 1): 3 of the 6 groups mapped within 0.3 m, 6 spurious landmarks (groups
+    // mapped twice), optimal-matching RMSE 0.30 m, team ATE 0.33 m. The issue's target (all 6,
+    // at most 3 spurious) is not reached yet; these bounds catch a regression.
+    assert!(t.landmarks_matched >= 3, "groups mapped within 0.3 m: {ev}");
+    assert!(t.landmarks_spurious <= 6, "{ev}");
+    assert!(t.landmark_rmse_optimal.unwrap() < 0.4, "{ev}");
+    assert!(t.ate_rmse < NO_IDS_ATE_BOUND, "team ATE {} m", t.ate_rmse);
 }
 
 #[test]

@@ -106,6 +106,13 @@ pub mod experiments {
         opts: &EvalOptions,
     ) -> (Evaluation, RunMetrics) {
         let mut cfg = FilterConfig::from_header(&log.header);
+        // FLEETSLAM_EXPERIMENT_CONFIG: FilterConfig fields (JSON) laid over the header's,
+        // to try settings with the example without editing code.
+        if let Ok(patch) = std::env::var("FLEETSLAM_EXPERIMENT_CONFIG") {
+            let patch: serde_json::Value =
+                serde_json::from_str(&patch).expect("FLEETSLAM_EXPERIMENT_CONFIG is JSON");
+            cfg = fleetslam_core::config::overlay(&cfg, patch).expect("valid config fields");
+        }
         cfg.particles = particles;
         cfg.seed = seed;
         cfg.version = version;

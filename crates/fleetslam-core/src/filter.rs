@@ -1049,7 +1049,7 @@ fn propose(
             },
             ctx.clutter,
         );
-        if outlier.is_some_and(|b| !(m2 <= b)) {
+        if outlier.is_some_and(|b| m2.is_nan() || m2 > b) {
             acts[j] = Action::Outlier;
             continue;
         }
@@ -1237,7 +1237,7 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
                 };
                 p.log_w += log_add_exp(ll, ctx.clutter);
             }
-            if outlier.is_some_and(|b| !(out.mahalanobis2 <= b)) {
+            if outlier.is_some_and(|b| out.mahalanobis2.is_nan() || out.mahalanobis2 > b) {
                 stats.outliers += 1;
                 continue;
             }

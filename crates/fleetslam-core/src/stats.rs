@@ -4,8 +4,8 @@
 
 /// `ln Γ(a)` for `a = k / 2`, `k >= 1` (exact recursion from Γ(1) = 1 and Γ(½) = √π).
 fn ln_gamma_half(k: u32) -> f64 {
-    let mut a = if k % 2 == 0 { 1.0 } else { 0.5 };
-    let mut lg = if k % 2 == 0 {
+    let mut a = if k.is_multiple_of(2) { 1.0 } else { 0.5 };
+    let mut lg = if k.is_multiple_of(2) {
         0.0
     } else {
         0.5 * std::f64::consts::PI.ln()

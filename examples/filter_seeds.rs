@@ -5,22 +5,32 @@
 //!     [--particles 1000] [--version 2] [--duration S] [--dataset DIR]
 //! cargo run --release --example filter_seeds -- control-noise [--seeds 1-5] \
 //!     [--particles 100] [--duration 60]
+//! cargo run --release --example filter_seeds -- sims [--seeds 1-5] [--particles 100]
 //! ```
 //!
 //! `mrclam` runs MRCLAM Dataset 6 (all five robots) once per seed and prints team ATE, RPE
 //! and the landmark figures (without ids: against the truth's 6 landmark groups, each
 //! matched within 0.3 m), then their mean and worst. `control-noise` runs the simulated
 //! high-control-noise scenario with FastSLAM 1.0 and 2.0 per seed and prints ATE and
-//! landmark NEES.
+//! landmark NEES. `sims` checks the settings tuned on MRCLAM on simulations they were not
+//! tuned on (other noise, landmark densities, fields of view, motion), FastSLAM 2.0 with and
+//! without deferred pose sampling and 1.0, and prints team ATE per scenario.
 
-use fleetslam_core::config::FastSlamVersion;
+use fleetslam_core::config::{FastSlamVersion, FilterConfig};
+use fleetslam_core::filter::FastSlam;
+use fleetslam_core::log::SensorRange;
+use fleetslam_core::motion::{MotionModel, MotionNoise};
+use fleetslam_core::sensor::SensorNoise;
+use fleetslam_data::evaluate::evaluate;
+use fleetslam_data::run::{TrajectoryEstimate, run_log};
+use fleetslam_data::sim::{SimConfig, simulate};
 use fleetslam_suite::experiments::{control_noise, mrclam, mrclam_eval_options, run_and_evaluate};
 use std::path::PathBuf;
 use std::time::Instant;
 
 fn usage() -> ! {
     eprintln!(
-        "usage: filter_seeds mrclam|control-noise [--no-ids] [--seeds A-B|a,b,c] \
+        "usage: filter_seeds mrclam|control-noise|sims [--no-ids] [--seeds A-B|a,b,c] \
          [--particles N] [--version 1|2] [--duration S] [--dataset DIR]"
     );
     std::process::exit(2)
@@ -59,6 +69,7 @@ fn main() {
     let mut versions = vec![FastSlamVersion::V1, FastSlamVersion::V2];
     let mut duration: Option<f64> = None;
     let mut dataset = PathBuf::from("../shared/datasets/mrclam-dataset6");
+    let mut odometry_delay: Option<f64> = None;
     let mut it = args[1..].iter();
     while let Some(a) = it.next() {
         let mut val = || it.next().cloned().unwrap_or_else(|| usage());
@@ -75,6 +86,7 @@ fn main() {
             }
             "--duration" => duration = Some(val().parse().unwrap_or_else(|_| usage())),
             "--dataset" => dataset = PathBuf::from(val()),
+            "--odometry-delay" => odometry_delay = Some(val().parse().unwrap_or_else(|_| usage())),
             _ => usage(),
         }
     }
@@ -83,7 +95,7 @@ fn main() {
             let version = *versions.last().expect("one version");
             let seeds = seeds.unwrap_or_else(|| (1..=10).collect());
             let particles = particles.unwrap_or(1000);
-            let imp = mrclam(&dataset, no_ids, duration);
+            let imp = mrclam(&dataset, no_ids, duration, odometry_delay);
             let opts = mrclam_eval_options(no_ids);
             println!(
                 "MRCLAM Dataset 6, {}, {particles} particles, FastSLAM {:?}{}",
@@ -161,6 +173,97 @@ fn main() {
                 );
             }
         }
+        "sims" => {
+            let seeds = seeds.unwrap_or_else(|| (1..=5).collect());
+            let particles = particles.unwrap_or(100);
+            println!("simulations not tuned on, {particles} particles, seeds {seeds:?}");
+            for (name, make) in scenarios() {
+                let mut line = format!("{name:<44}");
+                for (label, version, defer) in [
+                    ("2.0", FastSlamVersion::V2, true),
+                    ("2.0 no defer", FastSlamVersion::V2, false),
+                    ("1.0", FastSlamVersion::V1, false),
+                ] {
+                    let mut ates = Vec::new();
+                    for &seed in &seeds {
+                        let sim = simulate(&make(seed)).expect("valid simulation");
+                        let mut cfg = FilterConfig::from_header(&sim.log.header);
+                        cfg.particles = particles;
+                        cfg.seed = seed;
+                        cfg.version = version;
+                        cfg.defer_pose_sampling = defer;
+                        let mut slam = FastSlam::new(cfg).expect("valid configuration");
+                        let out = run_log(&mut slam, &sim.log, TrajectoryEstimate::Mean, |_, _| {})
+                            .expect("run");
+                        let ev = evaluate(&out.estimate, &sim.truth, true, &Default::default());
+                        ates.push(ev.team.ate_rmse);
+                    }
+                    line += &format!(
+                        " | {label}: mean {:.3} worst {:.3}",
+                        mean(&ates),
+                        max(&ates)
+                    );
+                }
+                println!("{line}");
+            }
+        }
         _ => usage(),
     }
+}
+
+/// Simulated scenarios none of the filter's settings were tuned on.
+#[allow(clippy::type_complexity)]
+fn scenarios() -> Vec<(&'static str, Box<dyn Fn(u64) -> SimConfig>)> {
+    let base = |seed| SimConfig {
+        seed,
+        duration: 120.0,
+        ..SimConfig::default()
+    };
+    vec![
+        ("default: 3 robots, 20 landmarks, 6 m 180 deg", Box::new(base)),
+        (
+            "sparse and narrow: 8 landmarks, 4 m 60 deg",
+            Box::new(move |seed| SimConfig {
+                landmarks: 8,
+                sensor_range: SensorRange {
+                    max_range: 4.0,
+                    fov: 60f64.to_radians(),
+                },
+                ..base(seed)
+            }),
+        ),
+        (
+            "dense, noisy motion x3: 60 landmarks",
+            Box::new(move |seed| {
+                let d = SimConfig::default().true_motion_noise;
+                SimConfig {
+                    landmarks: 60,
+                    true_motion_noise: MotionNoise {
+                        trans_per_m: 3.0 * d.trans_per_m,
+                        lateral_per_m: 3.0 * d.lateral_per_m,
+                        rot_per_rad: 3.0 * d.rot_per_rad,
+                        rot_per_m: 3.0 * d.rot_per_m,
+                        trans_per_sqrt_s: 3.0 * d.trans_per_sqrt_s,
+                        rot_per_sqrt_s: 3.0 * d.rot_per_sqrt_s,
+                        ..d
+                    },
+                    ..base(seed)
+                }
+            }),
+        ),
+        (
+            "5 robots, odometry, fast (0.8 m/s), noisy sensor",
+            Box::new(move |seed| SimConfig {
+                robots: 5,
+                motion_model: MotionModel::Odometry,
+                speed: 0.8,
+                true_sensor_noise: SensorNoise {
+                    range: 0.3,
+                    bearing: 0.05,
+                    ..SensorNoise::default()
+                },
+                ..base(seed)
+            }),
+        ),
+    ]
 }

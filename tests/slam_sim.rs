@@ -279,11 +279,12 @@ fn fastslam2_keeps_up_with_1_under_high_control_noise() {
             e2.team.landmark_nees.unwrap(),
         );
         // Measured (50 particles, 20 s): 1.0 0.288 / 0.120 m, 2.0 0.072 / 0.100 m; landmark
-        // NEES 1.0 514 / 315, 2.0 76 / 136: 2.0 is the more accurate and the less
-        // over-confident, but neither is consistent yet (NEES should be near 2).
+        // NEES (of the landmarks' marginals over the particles) 1.0 514 / 315, 2.0 74 / 119:
+        // 2.0 is the more accurate and the less over-confident, but neither is consistent
+        // yet (NEES should be near 2).
         assert!(a2 <= a1, "seed {seed}: 2.0 ATE {a2} vs 1.0 {a1}");
         assert!(
-            n2 < 200.0 && n2 < n1,
+            n2 < 130.0 && n2 < n1,
             "seed {seed}: NEES 2.0 {n2}, 1.0 {n1}"
         );
     }

@@ -72,11 +72,18 @@ pub mod experiments {
 
     /// MRCLAM Dataset 6 (all five robots), with or without landmark ids, optionally cut to
     /// its first `duration` seconds.
-    pub fn mrclam(dir: &Path, no_ids: bool, duration: Option<f64>) -> Imported {
+    pub fn mrclam(
+        dir: &Path,
+        no_ids: bool,
+        duration: Option<f64>,
+        odometry_delay: Option<f64>,
+    ) -> Imported {
+        let d = MrclamOptions::default();
         let opts = MrclamOptions {
             no_ids,
             duration,
-            ..Default::default()
+            odometry_delay: odometry_delay.unwrap_or(d.odometry_delay),
+            ..d
         };
         import_mrclam(dir, &opts).expect("import MRCLAM")
     }

@@ -268,8 +268,9 @@ enum ImportCommand {
         /// Keep only the first SECONDS of the data set.
         #[arg(long)]
         duration: Option<f64>,
-        /// Seconds added to odometry times (odometry leads Vicon by 0.15-0.2 s).
-        #[arg(long, default_value_t = 0.0)]
+        /// Seconds added to odometry times (odometry leads Vicon by 0.15-0.2 s; 0 keeps
+        /// the data as recorded).
+        #[arg(long, default_value_t = fleetslam_data::import::SUGGESTED_ODOMETRY_DELAY)]
         odometry_delay: f64,
     },
     /// Victoria Park (inputs.dat, measurements.dat, gps.dat).

@@ -90,6 +90,13 @@ pub enum FilterError {
 pub struct Particle {
     /// Pose of each robot, in the order robots were added.
     pub poses: Vec<Pose2>,
+    /// Per robot, the covariance of its pose around `poses` (upper triangle: xx, xy, xθ,
+    /// yy, yθ, θθ): zero once sampled. With FastSLAM 2.0 and `defer_pose_sampling`, a
+    /// record without landmark observations moves this Gaussian (linearised) instead of
+    /// sampling a pose, and the next record that observes a landmark samples from the
+    /// proposal built on it. Empty in snapshots written before it existed (read as zero).
+    #[serde(default)]
+    pub pose_covs: Vec<[f64; 6]>,
     pub map: LandmarkMap,
     /// Normalised log-weight.
     pub log_w: f64,
@@ -124,6 +131,10 @@ pub struct FilterStats {
     /// without a Cholesky factor) and that used 1.0's proposal instead.
     #[serde(default)]
     pub proposal_fallbacks: u64,
+    /// Landmarks merged into another of their map for lying closer than
+    /// `association_params.min_separation` (unknown association).
+    #[serde(default)]
+    pub landmarks_merged: u64,
 }
 
 impl FilterStats {
@@ -135,6 +146,7 @@ impl FilterStats {
         self.outliers += o.outliers;
         self.ignored_observations += o.ignored_observations;
         self.proposal_fallbacks += o.proposal_fallbacks;
+        self.landmarks_merged += o.landmarks_merged;
         self
     }
 }
@@ -167,11 +179,15 @@ pub struct RobotEstimate {
     pub records: u64,
 }
 
-/// A landmark of the best particle.
+/// A landmark of the best particle's map.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct LandmarkEstimate {
     pub slot: usize,
     pub id: Option<u32>,
+    /// With known ids, the landmark's marginal over the particles (their Gaussians' weighted
+    /// mixture, moment-matched: it holds the uncertainty of the trajectories that mapped
+    /// it); with unknown association, whose slots differ between particles, the best
+    /// particle's Gaussian.
     pub gaussian: LandmarkGaussian,
     pub hits: u32,
 }
@@ -282,6 +298,7 @@ impl FastSlam {
         let particles = (0..n)
             .map(|_| Particle {
                 poses: Vec::new(),
+                pose_covs: Vec::new(),
                 map: LandmarkMap::new(),
                 log_w: -(n as f64).ln(),
             })
@@ -367,6 +384,7 @@ impl FastSlam {
                     }
                 };
                 p.poses.push(pose);
+                p.pose_covs.push([0.0; 6]);
             });
         Ok(self.finish_add_robot(id, t0))
     }
@@ -413,6 +431,7 @@ impl FastSlam {
                 let u: f64 = stream(seed, step, LANE_ADD_ROBOT + i as u64).random();
                 let k = cum.partition_point(|&c| c < u).min(samples.len() - 1);
                 p.poses.push(samples[k]);
+                p.pose_covs.push([0.0; 6]);
             });
         Ok(self.finish_add_robot(id, t0))
     }
@@ -646,9 +665,11 @@ impl FastSlam {
                     let w = p.log_w.exp();
                     let q = &p.poses[r];
                     let d = [q.x - mean.x, q.y - mean.y, wrap_angle(q.theta - mean.theta)];
+                    // The spread of the particles plus each one's own pose covariance.
+                    let pc = sym3(&p.pose_covs[r]);
                     for i in 0..3 {
                         for j in 0..3 {
-                            cov[i][j] += w * d[i] * d[j];
+                            cov[i][j] += w * (d[i] * d[j] + pc[(i, j)]);
                         }
                     }
                 }
@@ -662,6 +683,7 @@ impl FastSlam {
                 }
             })
             .collect();
+        let known = self.config.association == Association::Known;
         let landmarks = self.particles[best]
             .map
             .iter()
@@ -669,7 +691,11 @@ impl FastSlam {
             .map(|(slot, l)| LandmarkEstimate {
                 slot,
                 id: l.id,
-                gaussian: l.gaussian,
+                gaussian: if known {
+                    self.landmark_marginal(slot).unwrap_or(l.gaussian)
+                } else {
+                    l.gaussian
+                },
                 hits: l.hits,
             })
             .collect();
@@ -681,6 +707,37 @@ impl FastSlam {
             best_particle: best,
             step: self.step,
         }
+    }
+
+    /// The marginal of a known-id landmark over the particles: the weighted mixture of its
+    /// Gaussians, moment-matched (`Σ wᵢ μᵢ`, `Σ wᵢ (Σᵢ + (μᵢ - μ)(μᵢ - μ)ᵀ)`), so that its
+    /// covariance holds the uncertainty of the trajectories that mapped it, which each
+    /// particle's own Gaussian (conditioned on its trajectory) leaves out. `None` when no
+    /// particle has weight on it.
+    fn landmark_marginal(&self, slot: usize) -> Option<LandmarkGaussian> {
+        let mut sw = 0.0;
+        let mut mean = Vector3::zeros();
+        for p in &self.particles {
+            if let Some(l) = p.map.get(slot) {
+                let w = p.log_w.exp();
+                sw += w;
+                mean += w * Vector3::from(l.gaussian.mean);
+            }
+        }
+        if !(sw > 0.0) {
+            return None;
+        }
+        mean /= sw;
+        let mut cov = Matrix3::zeros();
+        for p in &self.particles {
+            if let Some(l) = p.map.get(slot) {
+                let w = p.log_w.exp() / sw;
+                let d = Vector3::from(l.gaussian.mean) - mean;
+                cov += w * (l.gaussian.cov3() + d * d.transpose());
+            }
+        }
+        let g = LandmarkGaussian::from_3d(mean.into(), &cov);
+        g.is_finite().then_some(g)
     }
 
     /// A snapshot from which [`FastSlam::from_snapshot`] continues bit for bit.
@@ -714,6 +771,17 @@ impl FastSlam {
             return Err(FilterError::Snapshot(
                 "a particle lacks a robot's pose".into(),
             ));
+        }
+        let mut s = s;
+        for p in &mut s.particles {
+            if p.pose_covs.len() != p.poses.len() {
+                if !p.pose_covs.is_empty() {
+                    return Err(FilterError::Snapshot(
+                        "a particle's pose covariances do not match its poses".into(),
+                    ));
+                }
+                p.pose_covs = vec![[0.0; 6]; p.poses.len()];
+            }
         }
         let robot_index = s
             .robots
@@ -769,6 +837,80 @@ fn cholesky_psd(m: &Matrix3<f64>) -> Option<Matrix3<f64>> {
     }
     let jitter = 1e-12 * (1.0 + m.trace().abs());
     (m + Matrix3::identity() * jitter).cholesky().map(|c| c.l())
+}
+
+/// A symmetric 3x3 matrix from its upper triangle (xx, xy, xθ, yy, yθ, θθ).
+#[inline]
+fn sym3(c: &[f64; 6]) -> Matrix3<f64> {
+    Matrix3::new(c[0], c[1], c[2], c[1], c[3], c[4], c[2], c[4], c[5])
+}
+
+/// The upper triangle of a 3x3 matrix, symmetrised.
+#[inline]
+fn upper3(m: &Matrix3<f64>) -> [f64; 6] {
+    let s = |i: usize, j: usize| 0.5 * (m[(i, j)] + m[(j, i)]);
+    [m[(0, 0)], s(0, 1), s(0, 2), m[(1, 1)], s(1, 2), m[(2, 2)]]
+}
+
+/// Jacobian of `prev ⊕ inc` with respect to `prev`.
+#[inline]
+fn compose_jacobian(prev: &Pose2, inc: &Pose2) -> Matrix3<f64> {
+    let (s, c) = prev.theta.sin_cos();
+    Matrix3::new(
+        1.0,
+        0.0,
+        -s * inc.x - c * inc.y,
+        0.0,
+        1.0,
+        c * inc.x - s * inc.y,
+        0.0,
+        0.0,
+        1.0,
+    )
+}
+
+/// A sample of `N(mean, cov)` (the mean itself when `cov` has no Cholesky factor, which
+/// only a covariance with a non-finite entry lacks after the jitter).
+fn sample_gaussian(mean: &Pose2, cov: &Matrix3<f64>, rng: &mut ChaCha8Rng) -> Pose2 {
+    match cholesky_psd(cov) {
+        Some(l) => {
+            let e = l * normal3(rng);
+            Pose2::new(mean.x + e[0], mean.y + e[1], wrap_angle(mean.theta + e[2]))
+        }
+        None => *mean,
+    }
+}
+
+/// Log-likelihood of a sighting `z` (range, bearing) of a robot at `target` (position
+/// covariance `pt`, the 2x2 block of its pose covariance) from `pose` (pose covariance
+/// `pr`), with sighting noise `qs`, and the Kalman gain and innovation that update `pose`'s
+/// Gaussian with it: the marginal over both robots' pose Gaussians (a point pose has a zero
+/// covariance). `None` for a degenerate geometry.
+#[allow(clippy::type_complexity)]
+fn sighting_marginal(
+    pose: &Pose2,
+    pr: &Matrix3<f64>,
+    target: &Pose2,
+    pt: &Matrix3<f64>,
+    qs: &nalgebra::Matrix2<f64>,
+    z: &[f64; 2],
+) -> Option<(
+    f64,
+    nalgebra::Matrix2x3<f64>,
+    nalgebra::Matrix2<f64>,
+    nalgebra::Vector2<f64>,
+)> {
+    let (zhat, hm, hx) = range_bearing_predict(pose, target.x, target.y)?;
+    let ptp = pt.fixed_view::<2, 2>(0, 0).into_owned();
+    let s = qs + hm * ptp * hm.transpose() + hx * pr * hx.transpose();
+    let det = s.determinant();
+    if !(det > 0.0 && det.is_finite()) {
+        return None;
+    }
+    let s_inv = s.try_inverse()?;
+    let nu = nalgebra::Vector2::new(z[0] - zhat[0], wrap_angle(z[1] - zhat[1]));
+    let ll = -0.5 * nu.dot(&(s_inv * nu)) - LN_2PI - 0.5 * det.ln();
+    ll.is_finite().then_some((ll, hx, s_inv, nu))
 }
 
 /// Measurement prediction of a landmark from a pose, in the run's kind, as 3-vectors (the
@@ -926,12 +1068,17 @@ fn associate_record(
     // Every computed (observation, slot, m², ll); the gated ones are the candidates.
     let mut pairs: Vec<(usize, usize, f64, f64)> = Vec::new();
     let mut nearest_m2 = vec![f64::INFINITY; ctx.obs.len()];
+    // Squared ground-plane distance from each observation's point to the nearest landmark.
+    let mut nearest_d2 = vec![f64::INFINITY; ctx.obs.len()];
+    let mut points = Vec::with_capacity(ctx.obs.len());
     for (j, o) in ctx.obs.iter().enumerate() {
         let (wx, wy, q_world) = world_point(cfg, q, pose, &o.z);
+        points.push((wx, wy));
         let pose_term = pose_term + p[(2, 2)] * (o.z[0] * o.z[0] + o.z[1] * o.z[1]);
         for (slot, lm) in map.iter() {
             let g = &lm.gaussian;
             let d2 = (g.mean[0] - wx).powi(2) + (g.mean[1] - wy).powi(2);
+            nearest_d2[j] = nearest_d2[j].min(d2);
             let bound = (g.cov[0] + g.cov[3] + q_world + pose_term) * PRECHECK_SLACK;
             if d2 > ctx.new_landmark * bound {
                 continue;
@@ -960,6 +1107,7 @@ fn associate_record(
         best_ll[j] = ll;
     }
     let mut fresh: Vec<LandmarkGaussian> = Vec::new();
+    let sep2 = cfg.association_params.min_separation.powi(2);
     for (j, o) in ctx.obs.iter().enumerate() {
         if assigned[j] {
             continue;
@@ -969,13 +1117,16 @@ fn associate_record(
             .filter(|c| c.0 == j && !taken.contains(&c.1))
             .map(|c| c.3)
             .fold(f64::NEG_INFINITY, f64::max);
-        if nearest_m2[j] <= ctx.new_landmark {
+        if nearest_m2[j] <= ctx.new_landmark || nearest_d2[j] < sep2 {
             continue;
         }
         // Not near any landmark of the map: new, unless a landmark started by an earlier
-        // observation of this record explains it.
+        // observation of this record explains it or lies within the minimum separation.
+        let (wx, wy) = points[j];
         let near_fresh = fresh.iter().any(|g| {
-            match_ll(kind, q, g, pose, p, &o.z).is_none_or(|(m2, _)| m2 <= ctx.new_landmark)
+            (g.mean[0] - wx).powi(2) + (g.mean[1] - wy).powi(2) < sep2
+                || match_ll(kind, q, g, pose, p, &o.z)
+                    .is_none_or(|(m2, _)| m2 <= ctx.new_landmark)
         });
         if !near_fresh {
             fresh.push(ctx.updater.initialize(pose, &o.z));
@@ -985,8 +1136,8 @@ fn associate_record(
 }
 
 /// FastSLAM 2.0's proposal for one particle: the motion prediction `N(mean0, pc)` refined by
-/// each observation the association matched (a Kalman update of the pose per observation),
-/// then sampled. Returns the sampled pose and the particle's log-weight increment, the sum of
+/// each observation the association matched, and with `sightings_in_proposal` each sighting
+/// of another robot (a Kalman update of the pose per observation), then sampled. Returns the sampled pose and the particle's log-weight increment, the sum of
 /// each observation's mixture likelihood (its proposal marginal for the matched ones), or
 /// `None` when the proposal is degenerate (non-finite, or a covariance without a Cholesky
 /// factor): the caller then falls back to 1.0's proposal for this particle. Matched
@@ -995,7 +1146,7 @@ fn associate_record(
 fn propose(
     ctx: &StepCtx<'_>,
     q: &Matrix3<f64>,
-    map: &LandmarkMap,
+    part: &Particle,
     mean0: &Pose2,
     pc0: &Matrix3<f64>,
     acts: &mut [Action],
@@ -1020,7 +1171,7 @@ fn propose(
             }
         };
         let pose = Pose2::new(mu[0], mu[1], mu[2]);
-        let Some(lm) = map.get(slot) else {
+        let Some(lm) = part.map.get(slot) else {
             acts[j] = Action::Outlier;
             dw += ctx.clutter;
             continue;
@@ -1060,6 +1211,31 @@ fn propose(
         pc = ikh * pc * ikh.transpose() + k * qj * k.transpose();
         pc = 0.5 * (pc + pc.transpose());
     }
+    // With `sightings_in_proposal`, sightings of other robots refine the proposal too: the
+    // other robot's position is a landmark whose covariance is its pose covariance's
+    // position block.
+    let qs = ctx.cfg.sighting_noise.q2();
+    let sightings = if ctx.cfg.sightings_in_proposal {
+        ctx.sightings
+    } else {
+        &[]
+    };
+    for &(other, z) in sightings {
+        let pose = Pose2::new(mu[0], mu[1], mu[2]);
+        let pt = sym3(&part.pose_covs[other]);
+        let Some((ll, hx, s_inv, nu)) =
+            sighting_marginal(&pose, &pc, &part.poses[other], &pt, &qs, &z)
+        else {
+            dw += ctx.sighting_clutter;
+            continue;
+        };
+        dw += log_add_exp(ll, ctx.sighting_clutter);
+        let k = pc * hx.transpose() * s_inv;
+        mu += k * nu;
+        mu[2] = wrap_angle(mu[2]);
+        pc = (Matrix3::identity() - k * hx) * pc;
+        pc = 0.5 * (pc + pc.transpose());
+    }
     if !(mu.iter().all(|v| v.is_finite()) && pc.iter().all(|v| v.is_finite())) {
         return None;
     }
@@ -1073,6 +1249,38 @@ fn propose(
         Pose2::new(mu[0] + e[0], mu[1] + e[1], wrap_angle(mu[2] + e[2])),
         dw,
     ))
+}
+
+/// The deferred path of FastSLAM 2.0 for a record without landmark observations: the
+/// robot's predicted pose Gaussian `N(mean0, pc0)` updated by each of its sightings of other
+/// robots (an EKF update, marginal over the other robot's pose Gaussian), and the
+/// log-weight increment, each sighting's mixture likelihood.
+fn sighting_update(
+    ctx: &StepCtx<'_>,
+    qs: &nalgebra::Matrix2<f64>,
+    p: &Particle,
+    mean0: Pose2,
+    pc0: Matrix3<f64>,
+) -> (Pose2, Matrix3<f64>, f64) {
+    let (mut mu, mut pc, mut dw) = (mean0, pc0, 0.0);
+    for &(other, z) in ctx.sightings {
+        let pt = sym3(&p.pose_covs[other]);
+        let Some((ll, hx, s_inv, nu)) = sighting_marginal(&mu, &pc, &p.poses[other], &pt, qs, &z)
+        else {
+            dw += ctx.sighting_clutter;
+            continue;
+        };
+        dw += log_add_exp(ll, ctx.sighting_clutter);
+        let k = pc * hx.transpose() * s_inv;
+        let d = k * nu;
+        let next = Pose2::new(mu.x + d[0], mu.y + d[1], wrap_angle(mu.theta + d[2]));
+        let next_pc = (Matrix3::identity() - k * hx) * pc;
+        if next.is_finite() && next_pc.iter().all(|v| v.is_finite()) {
+            mu = next;
+            pc = 0.5 * (next_pc + next_pc.transpose());
+        }
+    }
+    (mu, pc, dw)
 }
 
 /// A sample of the motion model (FastSLAM 1.0's proposal).
@@ -1110,19 +1318,38 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
     // Whether particle i weighs its observations from the updater's likelihoods (1.0, or a
     // 2.0 particle whose proposal was degenerate) rather than from its proposal.
     let mut weigh_in_update = vec![true; n];
-    let use_v2 = cfg.version == FastSlamVersion::V2 && nobs > 0;
+    let v2 = cfg.version == FastSlamVersion::V2;
+    // 2.0 with deferred sampling: a record without landmark observations moves each
+    // particle's pose Gaussian of this robot (its sightings update it) instead of sampling.
+    let defer = v2 && cfg.defer_pose_sampling && nobs == 0;
+    let qs = cfg.sighting_noise.q2();
 
     // 1. Poses, association, and in 2.0 the weights from the proposal.
     for (i, p) in chunk.iter_mut().enumerate() {
         let prev = p.poses[r];
+        let prev_cov = p.pose_covs[r];
         let rng = &mut rngs[i];
         let acts = &mut actions[i * nobs..(i + 1) * nobs];
         let bll = &mut best_ll[i * nobs..(i + 1) * nobs];
-        if use_v2 {
-            let mean0 = prev.compose(&ctx.inc);
-            let pc0 = covariance_in_world(&prev, &ctx.var);
+        let point = prev_cov.iter().all(|v| *v == 0.0);
+        let mean0 = prev.compose(&ctx.inc);
+        let pc0 = if point {
+            covariance_in_world(&prev, &ctx.var)
+        } else {
+            let f = compose_jacobian(&prev, &ctx.inc);
+            f * sym3(&prev_cov) * f.transpose() + covariance_in_world(&prev, &ctx.var)
+        };
+        if defer {
+            let (pose, pc, dw) = sighting_update(ctx, &qs, p, mean0, pc0);
+            p.poses[r] = pose;
+            p.pose_covs[r] = upper3(&pc);
+            p.log_w += dw;
+            continue;
+        }
+        p.pose_covs[r] = [0.0; 6];
+        if v2 && nobs > 0 {
             associate_record(ctx, &q, &p.map, &mean0, &pc0, acts, bll);
-            if let Some((pose, dw)) = propose(ctx, &q, &p.map, &mean0, &pc0, acts, bll, rng) {
+            if let Some((pose, dw)) = propose(ctx, &q, p, &mean0, &pc0, acts, bll, rng) {
                 p.poses[r] = pose;
                 p.log_w += dw;
                 weigh_in_update[i] = false;
@@ -1130,7 +1357,11 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
             }
             stats.proposal_fallbacks += 1;
         }
-        let pose = sample_motion(ctx, &prev, rng);
+        let pose = if point {
+            sample_motion(ctx, &prev, rng)
+        } else {
+            sample_gaussian(&mean0, &pc0, rng)
+        };
         p.poses[r] = pose;
         if nobs > 0 {
             associate_record(ctx, &q, &p.map, &pose, &Matrix3::zeros(), acts, bll);
@@ -1262,28 +1493,74 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
         }
     }
 
-    // 3. Sightings of other robots: the same mixture, with the sighting noise.
-    if !ctx.sightings.is_empty() {
-        let qs = cfg.sighting_noise.q2();
-        let qs_inv = qs.try_inverse().unwrap_or_else(nalgebra::Matrix2::identity);
-        let logdet = qs.determinant().ln();
-        for p in chunk.iter_mut() {
+    // 3. Sightings of other robots: the same mixture, with the sighting noise, marginal
+    // over the other robot's pose Gaussian (the deferred path and 2.0's proposal weighed
+    // them already).
+    if !ctx.sightings.is_empty() && !defer {
+        for (i, p) in chunk.iter_mut().enumerate() {
+            if !weigh_in_update[i] && cfg.sightings_in_proposal {
+                continue;
+            }
             for &(other, z) in ctx.sightings {
-                let q = p.poses[other];
-                let ll = match range_bearing_predict(&p.poses[r], q.x, q.y) {
-                    Some((zhat, _, _)) => {
-                        let nu = nalgebra::Vector2::new(z[0] - zhat[0], wrap_angle(z[1] - zhat[1]));
-                        let m2 = nu.dot(&(qs_inv * nu));
-                        -0.5 * m2 - LN_2PI - 0.5 * logdet
-                    }
-                    None => f64::NEG_INFINITY,
-                };
+                let pt = sym3(&p.pose_covs[other]);
+                let ll = sighting_marginal(
+                    &p.poses[r],
+                    &Matrix3::zeros(),
+                    &p.poses[other],
+                    &pt,
+                    &qs,
+                    &z,
+                )
+                .map_or(f64::NEG_INFINITY, |m| m.0);
                 p.log_w += log_add_exp(ll, ctx.sighting_clutter);
             }
         }
     }
 
-    // 4. Existence of landmarks in view (unknown association).
+    // 4. Landmarks that this record brought closer than the minimum separation to another
+    // landmark of their map are one landmark (unknown association): the one observed more
+    // often stays and takes the other's observation count and existence.
+    let sep2 = a.min_separation * a.min_separation;
+    if !observed.is_empty() && sep2 > 0.0 {
+        for (i, p) in chunk.iter_mut().enumerate() {
+            for &s in &observed[i] {
+                let Some(l) = p.map.get(s).copied() else {
+                    continue;
+                };
+                let other = p
+                    .map
+                    .iter()
+                    .filter(|(t, m)| {
+                        *t != s
+                            && (m.gaussian.mean[0] - l.gaussian.mean[0]).powi(2)
+                                + (m.gaussian.mean[1] - l.gaussian.mean[1]).powi(2)
+                                < sep2
+                    })
+                    .map(|(t, m)| (t, *m))
+                    .next();
+                let Some((t, m)) = other else {
+                    continue;
+                };
+                let (keep, kept, gone) = if (m.hits, std::cmp::Reverse(t)) > (l.hits, std::cmp::Reverse(s)) {
+                    (t, m, l)
+                } else {
+                    (s, l, m)
+                };
+                p.map.set(
+                    keep,
+                    Landmark {
+                        hits: kept.hits + gone.hits,
+                        existence: kept.existence.max(gone.existence),
+                        ..kept
+                    },
+                );
+                p.map.remove(if keep == s { t } else { s });
+                stats.landmarks_merged += 1;
+            }
+        }
+    }
+
+    // 5. Existence of landmarks in view (unknown association).
     if let (Some(range), false) = (&cfg.sensor_range, observed.is_empty() || nobs == 0) {
         for (i, p) in chunk.iter_mut().enumerate() {
             let pose = p.poses[r];
@@ -1401,6 +1678,123 @@ mod tests {
         (0..25).map(|k| 0.05 * k as f64).collect()
     }
 
+    fn moving(robot: &str, t: f64, z: &[[f64; 2]], sightings: &[(&str, [f64; 2])]) -> Record {
+        Record {
+            robot: robot.into(),
+            seq: t as u64,
+            t,
+            motion: Some(Motion::Velocity(vec![[0.5, 0.1, 1.0]])),
+            landmarks: z
+                .iter()
+                .map(|z| LandmarkObservation {
+                    id: Some(7),
+                    z: z.to_vec(),
+                })
+                .collect(),
+            robots: sightings
+                .iter()
+                .map(|(r, z)| crate::log::RobotSighting {
+                    robot: r.to_string(),
+                    z: z.to_vec(),
+                })
+                .collect(),
+        }
+    }
+
+    #[test]
+    fn fastslam2_defers_sampling_until_a_landmark_is_seen() {
+        let cfg = FilterConfig {
+            particles: 20,
+            ..Default::default()
+        };
+        assert!(cfg.defer_pose_sampling && cfg.version == FastSlamVersion::V2);
+        let mut f = FastSlam::new(cfg.clone()).unwrap();
+        f.add_robot("r", &PoseGaussian::exact(Pose2::default()), 0.0)
+            .unwrap();
+        let inc = Motion::Velocity(vec![[0.5, 0.1, 1.0]]).increment(&cfg.ackermann);
+        let mut dead_reckoned = Pose2::default();
+        let mut trace = 0.0;
+        for k in 1..=5 {
+            f.step(&moving("r", k as f64, &[], &[])).unwrap();
+            dead_reckoned = dead_reckoned.compose(&inc);
+            // Every particle holds the dead-reckoned mean and one growing covariance.
+            let p0 = &f.particles()[0];
+            assert!(f.particles().iter().all(|p| p.poses[0] == p0.poses[0]));
+            let d = p0.poses[0];
+            assert!((d.x - dead_reckoned.x).abs() < 1e-12 && (d.y - dead_reckoned.y).abs() < 1e-12);
+            let c = p0.pose_covs[0];
+            assert!(c[0] + c[3] + c[5] > trace, "{c:?}");
+            trace = c[0] + c[3] + c[5];
+            // The estimate's covariance is that Gaussian's.
+            let e = f.estimate();
+            assert!((e.robots[0].cov[0][0] - c[0]).abs() < 1e-12);
+            assert!((e.robots[0].cov[2][2] - c[5]).abs() < 1e-12);
+        }
+        // The covariance holds what five sampled steps would spread: the heading variance
+        // grows linearly in the steps.
+        let one = covariance_in_world(&Pose2::default(), &cfg.motion_noise.variances(&inc, 1.0));
+        assert!((f.particles()[0].pose_covs[0][5] - 5.0 * one[(2, 2)]).abs() < 1e-12);
+        // A landmark observation samples from the proposal built on it.
+        f.step(&moving("r", 6.0, &[[2.0, 0.3]], &[])).unwrap();
+        assert!(f.particles().iter().all(|p| p.pose_covs[0] == [0.0; 6]));
+        let spread = f
+            .particles()
+            .iter()
+            .map(|p| (p.poses[0].x - f.particles()[0].poses[0].x).abs())
+            .fold(0.0, f64::max);
+        assert!(spread > 1e-3, "{spread}");
+        // Without deferral every record samples.
+        let mut g = FastSlam::new(FilterConfig {
+            defer_pose_sampling: false,
+            ..cfg
+        })
+        .unwrap();
+        g.add_robot("r", &PoseGaussian::exact(Pose2::default()), 0.0)
+            .unwrap();
+        g.step(&moving("r", 1.0, &[], &[])).unwrap();
+        let p0 = g.particles()[0].poses[0];
+        assert!(g.particles().iter().any(|p| p.poses[0] != p0));
+        assert!(g.particles().iter().all(|p| p.pose_covs[0] == [0.0; 6]));
+    }
+
+    #[test]
+    fn a_sighting_updates_the_deferred_pose_gaussian() {
+        // Robot b moves blind for 5 s; then it sees robot a (exactly at the origin) at the
+        // range and bearing its true pose gives, or sees nothing.
+        let run = |sight: bool| {
+            let mut f = FastSlam::new(FilterConfig {
+                particles: 4,
+                ..Default::default()
+            })
+            .unwrap();
+            f.add_robot("a", &PoseGaussian::exact(Pose2::default()), 0.0)
+                .unwrap();
+            f.add_robot("b", &PoseGaussian::exact(Pose2::new(-2.0, 0.0, 0.0)), 0.0)
+                .unwrap();
+            for k in 1..=5 {
+                f.step(&moving("b", k as f64, &[], &[])).unwrap();
+            }
+            // The truth is 0.2 m to the left of where dead reckoning puts b at t = 6.
+            let inc = Motion::Velocity(vec![[0.5, 0.1, 1.0]]).increment(&f.config().ackermann);
+            let b = f.particles()[0].poses[1].compose(&inc);
+            let truth = Pose2::new(b.x, b.y + 0.2, b.theta);
+            let (z, _, _) = range_bearing_predict(&truth, 0.0, 0.0).unwrap();
+            let sightings: Vec<(&str, [f64; 2])> = if sight {
+                vec![("a", [z[0], z[1]])]
+            } else {
+                vec![]
+            };
+            f.step(&moving("b", 6.0, &[], &sightings)).unwrap();
+            let p = &f.particles()[0];
+            (p.poses[1], p.pose_covs[1])
+        };
+        let (blind, blind_cov) = run(false);
+        let (seen, seen_cov) = run(true);
+        // Less uncertain, and pulled towards the pose that explains the sighting.
+        assert!(seen_cov[0] + seen_cov[3] < blind_cov[0] + blind_cov[3], "{seen_cov:?} {blind_cov:?}");
+        assert!(seen.y > blind.y + 0.01, "{seen:?} {blind:?}");
+    }
+
     #[test]
     fn weight_falls_monotonically_with_the_mahalanobis_distance() {
         for version in [FastSlamVersion::V1, FastSlamVersion::V2] {
@@ -1461,6 +1855,64 @@ mod tests {
         }
     }
 
+    /// [`filter_with_offsets`] with range noise 0.05 m, a given minimum separation and
+    /// extra landmarks (x, y, hits) in every particle.
+    fn filter_with_separation(min_separation: f64, extra: &[(f64, f64, u32)]) -> FastSlam {
+        let f = filter_with_offsets(FastSlamVersion::V2, Association::Unknown, &[0.0; 4]);
+        let mut snap = f.snapshot();
+        snap.config.sensor_noise.range = 0.05;
+        snap.config.association_params.min_separation = min_separation;
+        for p in &mut snap.particles {
+            for &(x, y, hits) in extra {
+                p.map.push(Landmark {
+                    gaussian: LandmarkGaussian {
+                        mean: [x, y, 0.0],
+                        cov: [0.01, 0.0, 0.0, 0.01, 0.0, 0.0],
+                    },
+                    id: None,
+                    existence: 5.0,
+                    hits,
+                });
+            }
+        }
+        let ekf = crate::ekf::EkfUpdater::new(snap.config.landmark_kind, &snap.config.sensor_noise);
+        FastSlam::from_snapshot(snap, Arc::new(ekf)).unwrap()
+    }
+
+    #[test]
+    fn no_landmark_starts_within_the_minimum_separation() {
+        // An observation 0.43 m beyond the landmark at (2, 0): squared Mahalanobis distance
+        // 0.43² / (0.01 + 0.05²) = 14.8, past the new-landmark threshold (13.8).
+        let z = [2.43, 0.0];
+        let mut f = filter_with_separation(0.0, &[]);
+        f.step(&record(&[z])).unwrap();
+        assert!(f.particles().iter().all(|p| p.map.len() == 2));
+        let mut f = filter_with_separation(0.45, &[]);
+        f.step(&record(&[z])).unwrap();
+        assert!(f.particles().iter().all(|p| p.map.len() == 1));
+        assert_eq!(f.stats().landmarks_created, 0);
+    }
+
+    #[test]
+    fn landmarks_closer_than_the_minimum_separation_merge() {
+        // A second landmark 0.3 m from the first (hits 5), observed more often (9 hits):
+        // observing the first one merges it into the second.
+        let mut f = filter_with_separation(0.45, &[(2.0, 0.3, 9)]);
+        f.step(&record(&[[2.0, 0.0]])).unwrap();
+        for p in f.particles() {
+            assert_eq!(p.map.len(), 1, "{:?}", p.map);
+            let (_, l) = p.map.iter().next().unwrap();
+            assert_eq!(l.gaussian.mean[..2], [2.0, 0.3]);
+            assert_eq!(l.hits, 9 + 6);
+        }
+        assert_eq!(f.stats().landmarks_merged, 4);
+        // 0.5 m apart: both stay.
+        let mut f = filter_with_separation(0.45, &[(2.0, 0.5, 9)]);
+        f.step(&record(&[[2.0, 0.0]])).unwrap();
+        assert!(f.particles().iter().all(|p| p.map.len() == 2));
+        assert_eq!(f.stats().landmarks_merged, 0);
+    }
+
     #[test]
     fn tentative_landmarks_are_not_reported_until_confirmed() {
         let mut f = filter_with_offsets(FastSlamVersion::V2, Association::Unknown, &[0.0; 4]);
@@ -1507,7 +1959,7 @@ mod tests {
             sighting_clutter: -10.0,
         };
         let q = q_matrix(&cfg);
-        let map = &f.particles()[0].map;
+        let part = &f.particles()[0];
         let mut acts = [Action::Update(0)];
         let mut rng = stream(0, 0, 0);
         // An indefinite pose covariance: no Cholesky factor, so no proposal (never a
@@ -1516,7 +1968,7 @@ mod tests {
         let got = propose(
             &ctx,
             &q,
-            map,
+            part,
             &Pose2::default(),
             &bad,
             &mut acts,
@@ -1528,7 +1980,7 @@ mod tests {
         let got = propose(
             &ctx,
             &q,
-            map,
+            part,
             &Pose2::default(),
             &ok,
             &mut acts,
@@ -1540,7 +1992,7 @@ mod tests {
         let (pose, _) = propose(
             &ctx,
             &q,
-            map,
+            part,
             &Pose2::default(),
             &Matrix3::zeros(),
             &mut acts,

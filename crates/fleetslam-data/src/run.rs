@@ -44,6 +44,9 @@ pub struct RunMetrics {
     pub landmarks: usize,
     pub landmarks_created: u64,
     pub landmarks_removed: u64,
+    /// Landmarks merged into a neighbour closer than the minimum separation (unknown ids).
+    #[serde(default)]
+    pub landmarks_merged: u64,
     pub outliers: u64,
     /// FastSLAM 2.0 particle steps whose proposal was degenerate and fell back to 1.0's.
     #[serde(default)]
@@ -235,6 +238,7 @@ fn finish(
         landmarks: est.landmarks.len(),
         landmarks_created: stats.landmarks_created,
         landmarks_removed: stats.landmarks_removed,
+        landmarks_merged: stats.landmarks_merged,
         outliers: stats.outliers,
         proposal_fallbacks: stats.proposal_fallbacks,
         final_ess: est.ess,

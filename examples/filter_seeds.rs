@@ -220,7 +220,10 @@ fn scenarios() -> Vec<(&'static str, Box<dyn Fn(u64) -> SimConfig>)> {
         ..SimConfig::default()
     };
     vec![
-        ("default: 3 robots, 20 landmarks, 6 m 180 deg", Box::new(base)),
+        (
+            "default: 3 robots, 20 landmarks, 6 m 180 deg",
+            Box::new(base),
+        ),
         (
             "sparse and narrow: 8 landmarks, 4 m 60 deg",
             Box::new(move |seed| SimConfig {

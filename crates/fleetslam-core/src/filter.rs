@@ -1125,8 +1125,7 @@ fn associate_record(
         let (wx, wy) = points[j];
         let near_fresh = fresh.iter().any(|g| {
             (g.mean[0] - wx).powi(2) + (g.mean[1] - wy).powi(2) < sep2
-                || match_ll(kind, q, g, pose, p, &o.z)
-                    .is_none_or(|(m2, _)| m2 <= ctx.new_landmark)
+                || match_ll(kind, q, g, pose, p, &o.z).is_none_or(|(m2, _)| m2 <= ctx.new_landmark)
         });
         if !near_fresh {
             fresh.push(ctx.updater.initialize(pose, &o.z));
@@ -1541,11 +1540,12 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
                 let Some((t, m)) = other else {
                     continue;
                 };
-                let (keep, kept, gone) = if (m.hits, std::cmp::Reverse(t)) > (l.hits, std::cmp::Reverse(s)) {
-                    (t, m, l)
-                } else {
-                    (s, l, m)
-                };
+                let (keep, kept, gone) =
+                    if (m.hits, std::cmp::Reverse(t)) > (l.hits, std::cmp::Reverse(s)) {
+                        (t, m, l)
+                    } else {
+                        (s, l, m)
+                    };
                 p.map.set(
                     keep,
                     Landmark {
@@ -1791,7 +1791,10 @@ mod tests {
         let (blind, blind_cov) = run(false);
         let (seen, seen_cov) = run(true);
         // Less uncertain, and pulled towards the pose that explains the sighting.
-        assert!(seen_cov[0] + seen_cov[3] < blind_cov[0] + blind_cov[3], "{seen_cov:?} {blind_cov:?}");
+        assert!(
+            seen_cov[0] + seen_cov[3] < blind_cov[0] + blind_cov[3],
+            "{seen_cov:?} {blind_cov:?}"
+        );
         assert!(seen.y > blind.y + 0.01, "{seen:?} {blind:?}");
     }
 

@@ -724,7 +724,7 @@ impl FastSlam {
                 mean += w * Vector3::from(l.gaussian.mean);
             }
         }
-        if !(sw > 0.0) {
+        if sw.is_nan() || sw <= 0.0 {
             return None;
         }
         mean /= sw;

@@ -270,6 +270,9 @@ struct StepCtx<'a> {
     clutter: f64,
     /// The same for a robot sighting (range-bearing, the sighting noise).
     sighting_clutter: f64,
+    /// Whether FastSLAM 2.0 defers the pose sampling of records without landmark
+    /// observations (`defer_pose_sampling` for the filter's current number of robots).
+    defer: bool,
 }
 
 impl FastSlam {
@@ -550,6 +553,7 @@ impl FastSlam {
             new_landmark: a.new_landmark_for(dim),
             clutter: a.clutter_for(dim, q_logdet),
             sighting_clutter: a.clutter_for(2, cfg.sighting_noise.q2().determinant().ln()),
+            defer: cfg.defer_pose_sampling.defers(self.robots.len()),
         };
         let best_before = self.best_index();
         let slots_before = self.particles[best_before].map.len();
@@ -1320,7 +1324,7 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
     let v2 = cfg.version == FastSlamVersion::V2;
     // 2.0 with deferred sampling: a record without landmark observations moves each
     // particle's pose Gaussian of this robot (its sightings update it) instead of sampling.
-    let defer = v2 && cfg.defer_pose_sampling && nobs == 0;
+    let defer = v2 && ctx.defer && nobs == 0;
     let qs = cfg.sighting_noise.q2();
 
     // 1. Poses, association, and in 2.0 the weights from the proposal.
@@ -1602,6 +1606,7 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::DeferSampling;
     use crate::log::LandmarkObservation;
     use crate::motion::MotionNoise;
 
@@ -1705,9 +1710,12 @@ mod tests {
     fn fastslam2_defers_sampling_until_a_landmark_is_seen() {
         let cfg = FilterConfig {
             particles: 20,
+            defer_pose_sampling: DeferSampling::Always,
             ..Default::default()
         };
-        assert!(cfg.defer_pose_sampling && cfg.version == FastSlamVersion::V2);
+        let d = FilterConfig::default();
+        assert_eq!(d.defer_pose_sampling, DeferSampling::Auto);
+        assert_eq!(d.version, FastSlamVersion::V2);
         let mut f = FastSlam::new(cfg.clone()).unwrap();
         f.add_robot("r", &PoseGaussian::exact(Pose2::default()), 0.0)
             .unwrap();
@@ -1743,18 +1751,69 @@ mod tests {
             .map(|p| (p.poses[0].x - f.particles()[0].poses[0].x).abs())
             .fold(0.0, f64::max);
         assert!(spread > 1e-3, "{spread}");
-        // Without deferral every record samples.
-        let mut g = FastSlam::new(FilterConfig {
-            defer_pose_sampling: false,
-            ..cfg
-        })
-        .unwrap();
-        g.add_robot("r", &PoseGaussian::exact(Pose2::default()), 0.0)
+        // Without deferral every record samples, and so does `auto` with one robot; with
+        // two, `auto` defers.
+        for (defer, robots, deferred) in [
+            (DeferSampling::Never, 1, false),
+            (DeferSampling::Never, 2, false),
+            (DeferSampling::Auto, 1, false),
+            (DeferSampling::Auto, 2, true),
+        ] {
+            let mut g = FastSlam::new(FilterConfig {
+                defer_pose_sampling: defer,
+                ..cfg.clone()
+            })
             .unwrap();
-        g.step(&moving("r", 1.0, &[], &[])).unwrap();
-        let p0 = g.particles()[0].poses[0];
-        assert!(g.particles().iter().any(|p| p.poses[0] != p0));
-        assert!(g.particles().iter().all(|p| p.pose_covs[0] == [0.0; 6]));
+            for k in 0..robots {
+                g.add_robot(
+                    &format!("r{k}"),
+                    &PoseGaussian::exact(Pose2::default()),
+                    0.0,
+                )
+                .unwrap();
+            }
+            g.step(&moving("r0", 1.0, &[], &[])).unwrap();
+            let p0 = g.particles()[0].poses[0];
+            let same = g.particles().iter().all(|p| p.poses[0] == p0);
+            let zero = g.particles().iter().all(|p| p.pose_covs[0] == [0.0; 6]);
+            assert_eq!(
+                (same, !zero),
+                (deferred, deferred),
+                "{defer:?} with {robots}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_deferred_gaussian_survives_a_snapshot_and_old_snapshots_read_as_sampled() {
+        let cfg = FilterConfig {
+            particles: 8,
+            defer_pose_sampling: DeferSampling::Always,
+            ..Default::default()
+        };
+        let mut f = FastSlam::new(cfg).unwrap();
+        f.add_robot("r", &PoseGaussian::exact(Pose2::default()), 0.0)
+            .unwrap();
+        for k in 1..=3 {
+            f.step(&moving("r", k as f64, &[], &[])).unwrap();
+        }
+        let json = serde_json::to_value(f.snapshot()).unwrap();
+        let back: Snapshot = serde_json::from_value(json.clone()).unwrap();
+        let g = FastSlam::from_snapshot(back, f.updater().clone()).unwrap();
+        assert_eq!(g.particles(), f.particles());
+        assert!(g.particles()[0].pose_covs[0][5] > 0.0);
+        // A snapshot written before pose covariances existed: every pose is a sample.
+        let mut old = json;
+        for p in old["particles"].as_array_mut().unwrap() {
+            p.as_object_mut().unwrap().remove("pose_covs");
+        }
+        let old: Snapshot = serde_json::from_value(old).unwrap();
+        let h = FastSlam::from_snapshot(old, f.updater().clone()).unwrap();
+        assert!(h.particles().iter().all(|p| p.pose_covs == vec![[0.0; 6]]));
+        // A mismatched one is refused.
+        let mut bad = f.snapshot();
+        bad.particles[0].pose_covs.push([0.0; 6]);
+        assert!(FastSlam::from_snapshot(bad, f.updater().clone()).is_err());
     }
 
     #[test]
@@ -1960,6 +2019,7 @@ mod tests {
             new_landmark: 16.0,
             clutter: -10.0,
             sighting_clutter: -10.0,
+            defer: true,
         };
         let q = q_matrix(&cfg);
         let part = &f.particles()[0];

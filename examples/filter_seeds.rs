@@ -28,7 +28,9 @@ use fleetslam_data::evaluate::evaluate;
 use fleetslam_data::import::{VictoriaOptions, import_victoria_park};
 use fleetslam_data::run::{TrajectoryEstimate, run_log};
 use fleetslam_data::sim::{SimConfig, simulate};
-use fleetslam_suite::experiments::{control_noise, mrclam, mrclam_eval_options, run_and_evaluate};
+use fleetslam_suite::experiments::{
+    control_noise, experiment_config, mrclam, mrclam_eval_options, run_and_evaluate,
+};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -229,12 +231,7 @@ fn main() {
             println!("Victoria Park, {particles} particles, FastSLAM 2.0, unknown association");
             for &seed in &seeds {
                 let t = Instant::now();
-                let mut cfg = FilterConfig::from_header(&imp.log.header);
-                // The same FilterConfig overlay as the MRCLAM runs take.
-                if let Ok(patch) = std::env::var("FLEETSLAM_EXPERIMENT_CONFIG") {
-                    let patch = serde_json::from_str(&patch).expect("JSON");
-                    cfg = fleetslam_core::config::overlay(&cfg, patch).expect("valid fields");
-                }
+                let mut cfg = experiment_config(&imp.log.header);
                 cfg.particles = particles;
                 cfg.seed = seed;
                 let mut slam = FastSlam::new(cfg).expect("valid configuration");

@@ -56,7 +56,7 @@ pub mod experiments {
 
     use fleetslam_core::config::{FastSlamVersion, FilterConfig};
     use fleetslam_core::filter::FastSlam;
-    use fleetslam_core::log::Log;
+    use fleetslam_core::log::{Log, LogHeader};
     use fleetslam_data::evaluate::{EvalOptions, Evaluation, evaluate};
     use fleetslam_data::formats::Truth;
     use fleetslam_data::import::{Imported, MrclamOptions, import_mrclam};
@@ -102,6 +102,21 @@ pub mod experiments {
         }
     }
 
+    /// The configuration the header suggests, with the fields of
+    /// `FLEETSLAM_EXPERIMENT_CONFIG` (FilterConfig fields as JSON) laid over it, to try
+    /// settings with the example without editing code.
+    pub fn experiment_config(header: &LogHeader) -> FilterConfig {
+        let cfg = FilterConfig::from_header(header);
+        match std::env::var("FLEETSLAM_EXPERIMENT_CONFIG") {
+            Ok(patch) => {
+                let patch: serde_json::Value =
+                    serde_json::from_str(&patch).expect("FLEETSLAM_EXPERIMENT_CONFIG is JSON");
+                fleetslam_core::config::overlay(&cfg, patch).expect("valid config fields")
+            }
+            Err(_) => cfg,
+        }
+    }
+
     /// Runs the log through a filter of the header's configuration with `particles`,
     /// `seed` and `version`, and evaluates the result.
     pub fn run_and_evaluate(
@@ -112,14 +127,7 @@ pub mod experiments {
         version: FastSlamVersion,
         opts: &EvalOptions,
     ) -> (Evaluation, RunMetrics) {
-        let mut cfg = FilterConfig::from_header(&log.header);
-        // FLEETSLAM_EXPERIMENT_CONFIG: FilterConfig fields (JSON) laid over the header's,
-        // to try settings with the example without editing code.
-        if let Ok(patch) = std::env::var("FLEETSLAM_EXPERIMENT_CONFIG") {
-            let patch: serde_json::Value =
-                serde_json::from_str(&patch).expect("FLEETSLAM_EXPERIMENT_CONFIG is JSON");
-            cfg = fleetslam_core::config::overlay(&cfg, patch).expect("valid config fields");
-        }
+        let mut cfg = experiment_config(&log.header);
         cfg.particles = particles;
         cfg.seed = seed;
         cfg.version = version;

@@ -759,7 +759,7 @@ impl FastSlam {
 
     /// Restores a filter from a snapshot, with the updater the run uses.
     pub fn from_snapshot(
-        s: Snapshot,
+        mut s: Snapshot,
         updater: Arc<dyn LandmarkUpdater>,
     ) -> Result<Self, FilterError> {
         s.config.validate()?;
@@ -776,7 +776,6 @@ impl FastSlam {
                 "a particle lacks a robot's pose".into(),
             ));
         }
-        let mut s = s;
         for p in &mut s.particles {
             if p.pose_covs.len() != p.poses.len() {
                 if !p.pose_covs.is_empty() {
@@ -1225,19 +1224,13 @@ fn propose(
     };
     for &(other, z) in sightings {
         let pose = Pose2::new(mu[0], mu[1], mu[2]);
-        let pt = sym3(&part.pose_covs[other]);
-        let Some((ll, hx, s_inv, nu)) =
-            sighting_marginal(&pose, &pc, &part.poses[other], &pt, &qs, &z)
-        else {
+        let Some((ll, next, next_pc)) = sighting_step(part, other, &z, &qs, &pose, &pc) else {
             dw += ctx.sighting_clutter;
             continue;
         };
         dw += log_add_exp(ll, ctx.sighting_clutter);
-        let k = pc * hx.transpose() * s_inv;
-        mu += k * nu;
-        mu[2] = wrap_angle(mu[2]);
-        pc = (Matrix3::identity() - k * hx) * pc;
-        pc = 0.5 * (pc + pc.transpose());
+        mu = Vector3::new(next.x, next.y, next.theta);
+        pc = next_pc;
     }
     if !(mu.iter().all(|v| v.is_finite()) && pc.iter().all(|v| v.is_finite())) {
         return None;
@@ -1267,23 +1260,38 @@ fn sighting_update(
 ) -> (Pose2, Matrix3<f64>, f64) {
     let (mut mu, mut pc, mut dw) = (mean0, pc0, 0.0);
     for &(other, z) in ctx.sightings {
-        let pt = sym3(&p.pose_covs[other]);
-        let Some((ll, hx, s_inv, nu)) = sighting_marginal(&mu, &pc, &p.poses[other], &pt, qs, &z)
-        else {
+        let Some((ll, next, next_pc)) = sighting_step(p, other, &z, qs, &mu, &pc) else {
             dw += ctx.sighting_clutter;
             continue;
         };
         dw += log_add_exp(ll, ctx.sighting_clutter);
-        let k = pc * hx.transpose() * s_inv;
-        let d = k * nu;
-        let next = Pose2::new(mu.x + d[0], mu.y + d[1], wrap_angle(mu.theta + d[2]));
-        let next_pc = (Matrix3::identity() - k * hx) * pc;
         if next.is_finite() && next_pc.iter().all(|v| v.is_finite()) {
             mu = next;
-            pc = 0.5 * (next_pc + next_pc.transpose());
+            pc = next_pc;
         }
     }
     (mu, pc, dw)
+}
+
+/// One sighting `z` of robot `other` (in particle `p`) as an EKF update of the pose Gaussian
+/// `N(mu, pc)` of the robot that saw it: the sighting's log-likelihood, marginal over both
+/// Gaussians ([`sighting_marginal`]), and the updated mean and (symmetrised) covariance.
+/// `None` for a degenerate geometry.
+fn sighting_step(
+    p: &Particle,
+    other: usize,
+    z: &[f64; 2],
+    qs: &nalgebra::Matrix2<f64>,
+    mu: &Pose2,
+    pc: &Matrix3<f64>,
+) -> Option<(f64, Pose2, Matrix3<f64>)> {
+    let pt = sym3(&p.pose_covs[other]);
+    let (ll, hx, s_inv, nu) = sighting_marginal(mu, pc, &p.poses[other], &pt, qs, z)?;
+    let k = pc * hx.transpose() * s_inv;
+    let d = k * nu;
+    let next = Pose2::new(mu.x + d[0], mu.y + d[1], wrap_angle(mu.theta + d[2]));
+    let next_pc = (Matrix3::identity() - k * hx) * pc;
+    Some((ll, next, 0.5 * (next_pc + next_pc.transpose())))
 }
 
 /// A sample of the motion model (FastSLAM 1.0's proposal).
@@ -1336,12 +1344,11 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
         let bll = &mut best_ll[i * nobs..(i + 1) * nobs];
         let point = prev_cov.iter().all(|v| *v == 0.0);
         let mean0 = prev.compose(&ctx.inc);
-        let pc0 = if point {
-            covariance_in_world(&prev, &ctx.var)
-        } else {
+        let mut pc0 = covariance_in_world(&prev, &ctx.var);
+        if !point {
             let f = compose_jacobian(&prev, &ctx.inc);
-            f * sym3(&prev_cov) * f.transpose() + covariance_in_world(&prev, &ctx.var)
-        };
+            pc0 += f * sym3(&prev_cov) * f.transpose();
+        }
         if defer {
             let (pose, pc, dw) = sighting_update(ctx, &qs, p, mean0, pc0);
             p.poses[r] = pose;
@@ -2025,44 +2032,26 @@ mod tests {
         let part = &f.particles()[0];
         let mut acts = [Action::Update(0)];
         let mut rng = stream(0, 0, 0);
+        let mut propose_with = |cov: &Matrix3<f64>| {
+            propose(
+                &ctx,
+                &q,
+                part,
+                &Pose2::default(),
+                cov,
+                &mut acts,
+                &[0.0],
+                &mut rng,
+            )
+        };
         // An indefinite pose covariance: no Cholesky factor, so no proposal (never a
         // noise-free sample).
         let bad = Matrix3::from_diagonal(&Vector3::new(-1.0, 0.01, 0.01));
-        let got = propose(
-            &ctx,
-            &q,
-            part,
-            &Pose2::default(),
-            &bad,
-            &mut acts,
-            &[0.0],
-            &mut rng,
-        );
-        assert!(got.is_none());
+        assert!(propose_with(&bad).is_none());
         let ok = Matrix3::from_diagonal(&Vector3::new(0.01, 0.01, 0.001));
-        let got = propose(
-            &ctx,
-            &q,
-            part,
-            &Pose2::default(),
-            &ok,
-            &mut acts,
-            &[0.0],
-            &mut rng,
-        );
-        assert!(got.is_some());
+        assert!(propose_with(&ok).is_some());
         // A zero covariance is a point proposal: the mean itself.
-        let (pose, _) = propose(
-            &ctx,
-            &q,
-            part,
-            &Pose2::default(),
-            &Matrix3::zeros(),
-            &mut acts,
-            &[0.0],
-            &mut rng,
-        )
-        .unwrap();
+        let (pose, _) = propose_with(&Matrix3::zeros()).unwrap();
         assert_eq!(pose, Pose2::default());
     }
 }

@@ -19,7 +19,7 @@
 //! without deferred pose sampling and 1.0, and prints team ATE per scenario. `victoria` runs
 //! Victoria Park (unknown association) and prints the ATE against GPS after SE(2) alignment.
 
-use fleetslam_core::config::{DeferSampling, FastSlamVersion, FilterConfig};
+use fleetslam_core::config::{DeferSampling, FastSlamVersion};
 use fleetslam_core::filter::FastSlam;
 use fleetslam_core::log::SensorRange;
 use fleetslam_core::motion::{MotionModel, MotionNoise};
@@ -112,7 +112,7 @@ fn main() {
             let (mut ates, mut rpes, mut lms) = (Vec::new(), Vec::new(), Vec::new());
             for &seed in &seeds {
                 let t = Instant::now();
-                let (ev, m) =
+                let (ev, m, est) =
                     run_and_evaluate(&imp.log, &imp.truth, particles, seed, version, &opts);
                 let tm = &ev.team;
                 println!(
@@ -133,6 +133,22 @@ fn main() {
                     m.landmarks_removed,
                     t.elapsed().as_secs_f64(),
                 );
+                if est.robots.iter().any(|r| r.odometry_scale != [1.0; 2]) {
+                    let scales: Vec<String> = est
+                        .robots
+                        .iter()
+                        .map(|r| {
+                            format!(
+                                "{} {:.3}/{:.3}",
+                                r.id, r.odometry_scale[0], r.odometry_scale[1]
+                            )
+                        })
+                        .collect();
+                    println!(
+                        "         odometry scales (distance/rotation): {}",
+                        scales.join(", ")
+                    );
+                }
                 ates.push(tm.ate_rmse);
                 rpes.push(tm.rpe_rmse);
                 lms.push(tm.landmark_rmse_optimal.unwrap_or(f64::NAN));
@@ -159,7 +175,8 @@ fn main() {
                 for &seed in &seeds {
                     let (log, truth) = control_noise(seed, duration);
                     let opts = Default::default();
-                    let (ev, m) = run_and_evaluate(&log, &truth, particles, seed, version, &opts);
+                    let (ev, m, _) =
+                        run_and_evaluate(&log, &truth, particles, seed, version, &opts);
                     println!(
                         "FastSLAM {version:?} seed {seed}: ATE {:.3} m, landmark rmse {:.3} m, \
                          landmark NEES {:.2} (dimension 2), proposal fallbacks {}",
@@ -193,7 +210,7 @@ fn main() {
                     let mut ates = Vec::new();
                     for &seed in &seeds {
                         let sim = simulate(&make(seed)).expect("valid simulation");
-                        let mut cfg = FilterConfig::from_header(&sim.log.header);
+                        let mut cfg = experiment_config(&sim.log.header);
                         cfg.particles = particles;
                         cfg.seed = seed;
                         cfg.version = version;
@@ -308,6 +325,13 @@ fn scenarios() -> Vec<(&'static str, Box<dyn Fn(u64) -> SimConfig>)> {
                     bearing: 0.05,
                     ..SensorNoise::default()
                 },
+                ..base(seed)
+            }),
+        ),
+        (
+            "biased odometry: moves 0.93 x distance, 0.95 x turn",
+            Box::new(move |seed| SimConfig {
+                odometry_scale: [0.93, 0.95],
                 ..base(seed)
             }),
         ),

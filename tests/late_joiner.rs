@@ -47,11 +47,9 @@ fn mrclam_robot_5_joins_after_the_others_mapped_for_a_minute() {
         j.localization.stats.updates,
         j.localization.samples
     );
-    assert!(
-        joined - join_at < 60.0,
-        "joined {} s late",
-        joined - join_at
-    );
+    // Measured (with the header's odometry calibration): joined 2.8 s after join_at,
+    // robot 5 0.286 m after joining; without calibration 4.4 s and 0.387 m.
+    assert!(joined - join_at < 5.0, "joined {} s late", joined - join_at);
     // Its trajectory starts when it joined; evaluated against Vicon in the shared frame.
     let traj = &out.estimate.trajectories["5"];
     assert!(traj.first().unwrap().t >= joined);
@@ -62,7 +60,7 @@ fn mrclam_robot_5_joins_after_the_others_mapped_for_a_minute() {
         r5.ate_rmse, r5.ate_max, r5.matched_poses, ev.team.ate_rmse
     );
     assert!(r5.matched_poses > 100);
-    assert!(r5.ate_rmse < 0.5, "robot 5 ATE {} m", r5.ate_rmse);
+    assert!(r5.ate_rmse < 0.32, "robot 5 ATE {} m", r5.ate_rmse);
     for id in ["1", "2", "3", "4"] {
         assert!(
             ev.robots[id].ate_rmse < 0.8,

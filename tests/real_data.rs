@@ -1,7 +1,7 @@
 //! The filter on real data: MRCLAM Dataset 6 (5 robots, known ids) and Victoria Park
 //! (unknown association). Shortened slices; the full runs are commands (see README).
 
-use fleetslam_core::config::{Association, FastSlamVersion, FilterConfig};
+use fleetslam_core::config::{Association, FastSlamVersion, FilterConfig, OdometryCalibration};
 use fleetslam_core::filter::FastSlam;
 use fleetslam_data::evaluate::{EvalOptions, evaluate};
 use fleetslam_data::import::{MrclamOptions, VictoriaOptions, import_mrclam, import_victoria_park};
@@ -22,6 +22,14 @@ fn mrclam_five_robots_shared_map_500_particles() {
     };
     let imp = import_mrclam(&dir, &opts).unwrap();
     let mut cfg = FilterConfig::from_header(&imp.log.header);
+    assert!(
+        cfg.odometry_calibration.enabled(),
+        "the header suggests calibration"
+    );
+    // Without the odometry calibration the header suggests: over the first 300 s the scales
+    // are not identified yet and their dimensions cost accuracy (seeds 1-4: team ATE mean
+    // 0.235 m with, 0.203 m without); they pay on the full run (README).
+    cfg.odometry_calibration = OdometryCalibration::default();
     cfg.particles = 500;
     cfg.seed = 1;
     let mut slam = FastSlam::new(cfg).unwrap();
@@ -86,7 +94,7 @@ fn mrclam_without_ids_maps_each_landmark_group_once() {
     let cfg = FilterConfig::from_header(&imp.log.header);
     assert_eq!(cfg.association, Association::Unknown);
     let opts = experiments::mrclam_eval_options(true);
-    let (ev, metrics) =
+    let (ev, metrics, _) =
         experiments::run_and_evaluate(&imp.log, &imp.truth, 200, 1, FastSlamVersion::V2, &opts);
     println!(
         "{ev}

@@ -55,7 +55,7 @@ pub mod experiments {
     //! and `cargo run --release --example filter_seeds` (the full runs the README reports).
 
     use fleetslam_core::config::{FastSlamVersion, FilterConfig};
-    use fleetslam_core::filter::FastSlam;
+    use fleetslam_core::filter::{Estimate, FastSlam};
     use fleetslam_core::log::{Log, LogHeader};
     use fleetslam_data::evaluate::{EvalOptions, Evaluation, evaluate};
     use fleetslam_data::formats::Truth;
@@ -118,7 +118,8 @@ pub mod experiments {
     }
 
     /// Runs the log through a filter of the header's configuration with `particles`,
-    /// `seed` and `version`, and evaluates the result.
+    /// `seed` and `version`, and evaluates the result; also returns the filter's final
+    /// estimate.
     pub fn run_and_evaluate(
         log: &Log,
         truth: &Truth,
@@ -126,7 +127,7 @@ pub mod experiments {
         seed: u64,
         version: FastSlamVersion,
         opts: &EvalOptions,
-    ) -> (Evaluation, RunMetrics) {
+    ) -> (Evaluation, RunMetrics, Estimate) {
         let mut cfg = experiment_config(&log.header);
         cfg.particles = particles;
         cfg.seed = seed;
@@ -134,7 +135,7 @@ pub mod experiments {
         let mut slam = FastSlam::new(cfg).expect("valid configuration");
         let out = run_log(&mut slam, log, TrajectoryEstimate::Mean, |_, _| {}).expect("run");
         let ev = evaluate(&out.estimate, truth, out.metrics.shared_frame, opts);
-        (ev, out.metrics)
+        (ev, out.metrics, out.final_estimate)
     }
 
     /// The high-control-noise simulation ([`SimConfig::high_control_noise`]) of `seed`.

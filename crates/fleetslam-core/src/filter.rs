@@ -36,13 +36,13 @@
 //! Every random draw comes from a stream keyed by (seed, step, particle), so the results are
 //! bit-identical for any number of threads.
 
-use crate::config::{Association, ConfigError, FastSlamVersion, FilterConfig};
+use crate::config::{Association, ConfigError, FastSlamVersion, FilterConfig, OdometryCalibration};
 use crate::log::Record;
 use crate::map::{Landmark, LandmarkMap};
 use crate::motion::{Motion, covariance_in_world};
 use crate::pose::{Pose2, PoseGaussian, weighted_mean_pose, wrap_angle};
 use crate::resample::{normalize_log_weights, systematic};
-use crate::rng::{LANE_ADD_ROBOT, LANE_RESAMPLE, stream};
+use crate::rng::{LANE_ADD_ROBOT, LANE_CALIBRATION, LANE_RESAMPLE, stream};
 use crate::sensor::{LandmarkKind, point3_predict, range_bearing_inverse, range_bearing_predict};
 use crate::stats::log_add_exp;
 use crate::updater::{LandmarkGaussian, LandmarkUpdater, UpdateInput, UpdateOutput};
@@ -97,6 +97,11 @@ pub struct Particle {
     /// proposal built on it. Empty in snapshots written before it existed (read as zero).
     #[serde(default)]
     pub pose_covs: Vec<[f64; 6]>,
+    /// Per robot, the scales (distance, rotation) this particle applies to the robot's
+    /// motion increments ([`crate::config::OdometryCalibration`]); `[1, 1]` when not
+    /// estimated. Empty in snapshots written before it existed (read as `[1, 1]`).
+    #[serde(default)]
+    pub odometry_scales: Vec<[f64; 2]>,
     pub map: LandmarkMap,
     /// Normalised log-weight.
     pub log_w: f64,
@@ -177,6 +182,14 @@ pub struct RobotEstimate {
     pub cov: [[f64; 3]; 3],
     pub last_t: f64,
     pub records: u64,
+    /// The weighted mean of the particles' odometry scales (distance, rotation) of this
+    /// robot; `[1, 1]` without [`crate::config::OdometryCalibration`].
+    #[serde(default = "unit_scales")]
+    pub odometry_scale: [f64; 2],
+}
+
+fn unit_scales() -> [f64; 2] {
+    [1.0; 2]
 }
 
 /// A landmark of the best particle's map.
@@ -254,6 +267,8 @@ struct StepCtx<'a> {
     updater: &'a dyn LandmarkUpdater,
     robot: usize,
     inc: Pose2,
+    /// The motion's duration (s), for the random walk of the odometry scales.
+    dt: f64,
     /// Variances of the (longitudinal, lateral, heading) increment noise.
     var: [f64; 3],
     /// Their square roots.
@@ -302,6 +317,7 @@ impl FastSlam {
             .map(|_| Particle {
                 poses: Vec::new(),
                 pose_covs: Vec::new(),
+                odometry_scales: Vec::new(),
                 map: LandmarkMap::new(),
                 log_w: -(n as f64).ln(),
             })
@@ -373,6 +389,7 @@ impl FastSlam {
             })?)
         };
         let (seed, step) = (self.config.seed, self.step);
+        let calibration = self.config.odometry_calibration;
         let mean = start.mean;
         self.particles
             .par_iter_mut()
@@ -388,6 +405,8 @@ impl FastSlam {
                 };
                 p.poses.push(pose);
                 p.pose_covs.push([0.0; 6]);
+                p.odometry_scales
+                    .push(draw_scales(&calibration, seed, step, i));
             });
         Ok(self.finish_add_robot(id, t0))
     }
@@ -427,6 +446,7 @@ impl FastSlam {
         }
         cum.iter_mut().for_each(|c| *c /= total);
         let (seed, step) = (self.config.seed, self.step);
+        let calibration = self.config.odometry_calibration;
         self.particles
             .par_iter_mut()
             .enumerate()
@@ -435,6 +455,8 @@ impl FastSlam {
                 let k = cum.partition_point(|&c| c < u).min(samples.len() - 1);
                 p.poses.push(samples[k]);
                 p.pose_covs.push([0.0; 6]);
+                p.odometry_scales
+                    .push(draw_scales(&calibration, seed, step, i));
             });
         Ok(self.finish_add_robot(id, t0))
     }
@@ -543,6 +565,7 @@ impl FastSlam {
             updater: self.updater.as_ref(),
             robot: r,
             inc,
+            dt,
             var,
             std: var.map(f64::sqrt),
             obs: &obs,
@@ -665,8 +688,13 @@ impl FastSlam {
             .map(|(r, st)| {
                 let mean = self.mean_pose(r);
                 let mut cov = [[0.0; 3]; 3];
+                let (mut odometry_scale, mut sw) = ([0.0; 2], 0.0);
                 for p in &self.particles {
                     let w = p.log_w.exp();
+                    sw += w;
+                    for (m, s) in odometry_scale.iter_mut().zip(p.odometry_scales[r]) {
+                        *m += w * s;
+                    }
                     let q = &p.poses[r];
                     let d = [q.x - mean.x, q.y - mean.y, wrap_angle(q.theta - mean.theta)];
                     // The spread of the particles plus each one's own pose covariance.
@@ -677,6 +705,8 @@ impl FastSlam {
                         }
                     }
                 }
+                // Divided by the weights' sum, so that scales of 1 read exactly 1.
+                odometry_scale = odometry_scale.map(|m| m / sw);
                 RobotEstimate {
                     id: st.id.clone(),
                     best: self.particles[best].poses[r],
@@ -684,6 +714,7 @@ impl FastSlam {
                     cov,
                     last_t: st.last_t,
                     records: st.records,
+                    odometry_scale,
                 }
             })
             .collect();
@@ -784,6 +815,14 @@ impl FastSlam {
                     ));
                 }
                 p.pose_covs = vec![[0.0; 6]; p.poses.len()];
+            }
+            if p.odometry_scales.len() != p.poses.len() {
+                if !p.odometry_scales.is_empty() {
+                    return Err(FilterError::Snapshot(
+                        "a particle's odometry scales do not match its poses".into(),
+                    ));
+                }
+                p.odometry_scales = vec![[1.0; 2]; p.poses.len()];
             }
         }
         let robot_index = s
@@ -1295,14 +1334,39 @@ fn sighting_step(
 }
 
 /// A sample of the motion model (FastSLAM 1.0's proposal).
-fn sample_motion(ctx: &StepCtx<'_>, prev: &Pose2, rng: &mut ChaCha8Rng) -> Pose2 {
+fn sample_motion(ctx: &StepCtx<'_>, prev: &Pose2, inc: &Pose2, rng: &mut ChaCha8Rng) -> Pose2 {
     let e = Pose2::new(
         ctx.std[0] * rng.sample::<f64, _>(StandardNormal),
         ctx.std[1] * rng.sample::<f64, _>(StandardNormal),
         ctx.std[2] * rng.sample::<f64, _>(StandardNormal),
     );
-    let noisy = Pose2::new(ctx.inc.x + e.x, ctx.inc.y + e.y, ctx.inc.theta + e.theta);
+    let noisy = Pose2::new(inc.x + e.x, inc.y + e.y, inc.theta + e.theta);
     prev.compose(&noisy)
+}
+
+/// A new robot's odometry scales in particle `i`: `[1, 1]` without calibration (nothing
+/// drawn), else `1 + std · N(0, 1)` each, from the particle's calibration stream.
+fn draw_scales(cal: &OdometryCalibration, seed: u64, step: u64, i: usize) -> [f64; 2] {
+    if !cal.enabled() {
+        return [1.0; 2];
+    }
+    let mut rng = stream(seed, step, LANE_CALIBRATION + i as u64);
+    let mut draw = |std: f64| 1.0 + std * rng.sample::<f64, _>(StandardNormal);
+    [draw(cal.distance_std), draw(cal.rotation_std)]
+}
+
+/// The record's increment as this particle's odometry scales of the robot see it, after
+/// their random walk over the motion's duration (which draws from `rng` only when
+/// calibration walks).
+fn scaled_increment(ctx: &StepCtx<'_>, p: &mut Particle, rng: &mut ChaCha8Rng) -> Pose2 {
+    let cal = &ctx.cfg.odometry_calibration;
+    let s = &mut p.odometry_scales[ctx.robot];
+    if cal.walks() && ctx.dt > 0.0 {
+        let sq = ctx.dt.sqrt();
+        s[0] += cal.distance_walk_per_sqrt_s * sq * rng.sample::<f64, _>(StandardNormal);
+        s[1] += cal.rotation_walk_per_sqrt_s * sq * rng.sample::<f64, _>(StandardNormal);
+    }
+    Pose2::new(s[0] * ctx.inc.x, s[0] * ctx.inc.y, s[1] * ctx.inc.theta)
 }
 
 /// One work item: `chunk` holds particles `base..base + chunk.len()`.
@@ -1334,6 +1398,7 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
     // particle's pose Gaussian of this robot (its sightings update it) instead of sampling.
     let defer = v2 && ctx.defer && nobs == 0;
     let qs = cfg.sighting_noise.q2();
+    let calibrate = cfg.odometry_calibration.enabled();
 
     // 1. Poses, association, and in 2.0 the weights from the proposal.
     for (i, p) in chunk.iter_mut().enumerate() {
@@ -1343,10 +1408,15 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
         let acts = &mut actions[i * nobs..(i + 1) * nobs];
         let bll = &mut best_ll[i * nobs..(i + 1) * nobs];
         let point = prev_cov.iter().all(|v| *v == 0.0);
-        let mean0 = prev.compose(&ctx.inc);
+        let inc = if calibrate {
+            scaled_increment(ctx, p, rng)
+        } else {
+            ctx.inc
+        };
+        let mean0 = prev.compose(&inc);
         let mut pc0 = covariance_in_world(&prev, &ctx.var);
         if !point {
-            let f = compose_jacobian(&prev, &ctx.inc);
+            let f = compose_jacobian(&prev, &inc);
             pc0 += f * sym3(&prev_cov) * f.transpose();
         }
         if defer {
@@ -1368,7 +1438,7 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
             stats.proposal_fallbacks += 1;
         }
         let pose = if point {
-            sample_motion(ctx, &prev, rng)
+            sample_motion(ctx, &prev, &inc, rng)
         } else {
             sample_gaussian(&mean0, &pc0, rng)
         };
@@ -1823,6 +1893,116 @@ mod tests {
         assert!(FastSlam::from_snapshot(bad, f.updater().clone()).is_err());
     }
 
+    fn calibrated(cal: OdometryCalibration) -> FastSlam {
+        let cfg = FilterConfig {
+            particles: 16,
+            odometry_calibration: cal,
+            ..Default::default()
+        };
+        let mut f = FastSlam::new(cfg).unwrap();
+        f.add_robot("r", &PoseGaussian::exact(Pose2::default()), 0.0)
+            .unwrap();
+        f
+    }
+
+    #[test]
+    fn odometry_scales_are_drawn_walk_and_scale_the_increment() {
+        // Off: every scale is exactly 1 and the estimate reports 1.
+        let f = calibrated(OdometryCalibration::default());
+        assert!(
+            f.particles()
+                .iter()
+                .all(|p| p.odometry_scales == vec![[1.0; 2]])
+        );
+        assert_eq!(f.estimate().robots[0].odometry_scale, [1.0; 2]);
+        // A prior only: drawn once per particle, spread by about its standard deviation,
+        // then fixed.
+        let cal = OdometryCalibration {
+            distance_std: 0.05,
+            rotation_std: 0.02,
+            ..Default::default()
+        };
+        let mut f = calibrated(cal);
+        let drawn: Vec<[f64; 2]> = f.particles().iter().map(|p| p.odometry_scales[0]).collect();
+        let spread = |k: usize| {
+            let m = drawn.iter().map(|s| s[k]).sum::<f64>() / drawn.len() as f64;
+            (drawn.iter().map(|s| (s[k] - m).powi(2)).sum::<f64>() / drawn.len() as f64).sqrt()
+        };
+        assert!((0.025..0.1).contains(&spread(0)), "{}", spread(0));
+        assert!((0.01..0.04).contains(&spread(1)), "{}", spread(1));
+        f.step(&moving("r", 1.0, &[], &[])).unwrap();
+        let after: Vec<[f64; 2]> = f.particles().iter().map(|p| p.odometry_scales[0]).collect();
+        let sorted = |mut v: Vec<[f64; 2]>| {
+            v.sort_by(|a, b| a.partial_cmp(b).unwrap());
+            v
+        };
+        // Resampling may reorder them; the set stays the same without a walk.
+        assert!(
+            sorted(after)
+                .iter()
+                .all(|s| sorted(drawn.clone()).contains(s))
+        );
+        // With a walk and no motion noise, a particle's pose is the scaled increment.
+        let cal = OdometryCalibration {
+            distance_walk_per_sqrt_s: 0.01,
+            rotation_walk_per_sqrt_s: 0.01,
+            ..Default::default()
+        };
+        let cfg = FilterConfig {
+            particles: 4,
+            motion_noise: still(),
+            odometry_calibration: cal,
+            ..Default::default()
+        };
+        let mut f = FastSlam::new(cfg).unwrap();
+        f.add_robot("r", &PoseGaussian::exact(Pose2::default()), 0.0)
+            .unwrap();
+        f.step(&moving("r", 1.0, &[], &[])).unwrap();
+        let inc = Motion::Velocity(vec![[0.5, 0.1, 1.0]]).increment(&f.config().ackermann);
+        for p in f.particles() {
+            let [sd, sr] = p.odometry_scales[0];
+            assert!(sd != 1.0 && sr != 1.0);
+            let want = Pose2::new(sd * inc.x, sd * inc.y, sr * inc.theta);
+            let got = p.poses[0];
+            assert!((got.x - want.x).abs() < 1e-12 && (got.theta - want.theta).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn odometry_scales_survive_a_snapshot_and_old_snapshots_read_as_one() {
+        let cal = OdometryCalibration {
+            distance_std: 0.05,
+            rotation_std: 0.05,
+            distance_walk_per_sqrt_s: 0.001,
+            rotation_walk_per_sqrt_s: 0.001,
+        };
+        let mut f = calibrated(cal);
+        f.step(&moving("r", 1.0, &[], &[])).unwrap();
+        let json = serde_json::to_value(f.snapshot()).unwrap();
+        let g = FastSlam::from_snapshot(
+            serde_json::from_value(json.clone()).unwrap(),
+            f.updater().clone(),
+        )
+        .unwrap();
+        assert_eq!(g.particles(), f.particles());
+        let mut old = json;
+        for p in old["particles"].as_array_mut().unwrap() {
+            p.as_object_mut().unwrap().remove("odometry_scales");
+        }
+        let h = FastSlam::from_snapshot(serde_json::from_value(old).unwrap(), f.updater().clone())
+            .unwrap();
+        assert!(
+            h.particles()
+                .iter()
+                .all(|p| p.odometry_scales == vec![[1.0; 2]])
+        );
+        let mut bad = f.snapshot();
+        bad.particles[0].odometry_scales.clear();
+        bad.particles[0].odometry_scales.push([1.0; 2]);
+        bad.particles[0].odometry_scales.push([1.0; 2]);
+        assert!(FastSlam::from_snapshot(bad, f.updater().clone()).is_err());
+    }
+
     #[test]
     fn a_sighting_updates_the_deferred_pose_gaussian() {
         // Robot b moves blind for 5 s; then it sees robot a (exactly at the origin) at the
@@ -2016,6 +2196,7 @@ mod tests {
             updater: f.updater().as_ref(),
             robot: 0,
             inc: Pose2::default(),
+            dt: 0.0,
             var: [0.0; 3],
             std: [0.0; 3],
             obs: &obs,

@@ -33,6 +33,10 @@ pub struct LogHeader {
     /// Suggested motion noise.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub motion_noise: Option<MotionNoise>,
+    /// Suggested online odometry calibration (each robot's odometry scales estimated by
+    /// the filter).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub odometry_calibration: Option<crate::config::OdometryCalibration>,
     /// Suggested landmark measurement noise.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sensor_noise: Option<SensorNoise>,
@@ -272,6 +276,7 @@ mod tests {
                 motion_model: MotionModel::Velocity,
                 ackermann: None,
                 motion_noise: Some(MotionNoise::default()),
+                odometry_calibration: None,
                 sensor_noise: None,
                 sighting_noise: None,
                 sensor_range: None,

@@ -12,6 +12,8 @@ use rand_chacha::ChaCha8Rng;
 pub const LANE_RESAMPLE: u64 = u64::MAX;
 /// Lane offset for drawing the start poses of a robot added to a running filter.
 pub const LANE_ADD_ROBOT: u64 = 1 << 62;
+/// Lane offset for drawing the odometry scales of a robot added to the filter.
+pub const LANE_CALIBRATION: u64 = 1 << 61;
 
 #[inline]
 fn splitmix64(mut z: u64) -> u64 {

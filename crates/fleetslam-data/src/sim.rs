@@ -147,6 +147,10 @@ pub struct SimConfig {
     /// Range of landmark heights `[z_min, z_max]` for random 3D landmarks (m).
     /// Default `[0.2, 2.0]`.
     pub landmark_height: [f64; 2],
+    /// Systematic odometry error `[distance, rotation]`: the robot truly moves
+    /// `(d·dx, d·dy, r·dθ)` of each commanded increment (worn wheels, a track width off its
+    /// nominal value), before the noise; the log keeps the commands. Default `[1, 1]`.
+    pub odometry_scale: [f64; 2],
 }
 
 impl Default for SimConfig {
@@ -172,6 +176,7 @@ impl Default for SimConfig {
             seed: 1,
             landmark_positions: None,
             landmark_height: [0.2, 2.0],
+            odometry_scale: [1.0, 1.0],
         }
     }
 }
@@ -304,6 +309,17 @@ impl SimConfig {
         self.true_motion_noise
             .validate()
             .map_err(|e| config_error(format!("true_{e}")))?;
+        check(
+            self.odometry_scale
+                .iter()
+                .all(|s| s.is_finite() && (0.5..=1.5).contains(s)),
+            || {
+                format!(
+                    "odometry_scale must hold two factors between 0.5 and 1.5, got {:?}",
+                    self.odometry_scale
+                )
+            },
+        )?;
         let n = &self.true_sensor_noise;
         for (name, v) in [
             ("range", n.range),
@@ -511,7 +527,12 @@ fn drive(cfg: &SimConfig, robot: usize) -> RobotRun {
         let var = cfg.true_motion_noise.variances(&inc, cfg.record_period);
         // Always three draws, so the stream stays aligned whatever the noise levels.
         let e: [f64; 3] = std::array::from_fn(|k| var[k].sqrt() * normal(&mut noise_rng));
-        pose = pose.compose(&Pose2::new(inc.x + e[0], inc.y + e[1], inc.theta + e[2]));
+        let [sd, sr] = cfg.odometry_scale;
+        pose = pose.compose(&Pose2::new(
+            sd * inc.x + e[0],
+            sd * inc.y + e[1],
+            sr * inc.theta + e[2],
+        ));
         motions.push(match cfg.motion_model {
             MotionModel::Odometry => Motion::Odometry([inc.x, inc.y, inc.theta]),
             _ => velocity,
@@ -666,6 +687,7 @@ pub fn simulate(cfg: &SimConfig) -> Result<Simulated, SimError> {
         motion_model: cfg.motion_model,
         ackermann: None,
         motion_noise: Some(cfg.true_motion_noise),
+        odometry_calibration: None,
         sensor_noise: Some(sensor_noise),
         sighting_noise: (cfg.sighting_range > 0.0).then_some(sensor_noise),
         sensor_range: Some(cfg.sensor_range),
@@ -866,6 +888,48 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// With an odometry scale the robot truly moves the scaled increments of its logged
+    /// commands (exactly, without noise), and the log keeps the commands.
+    #[test]
+    fn odometry_scale_scales_the_true_motion() {
+        let scale = [0.9, 1.1];
+        let cfg = SimConfig {
+            true_motion_noise: zero_motion_noise(),
+            duration: 10.0,
+            odometry_scale: scale,
+            ..SimConfig::default()
+        };
+        let s = simulate(&cfg).unwrap();
+        let plain = simulate(&SimConfig {
+            odometry_scale: [1.0, 1.0],
+            ..cfg.clone()
+        })
+        .unwrap();
+        let start = &s.log.header.robots[0];
+        let truth = &s.truth.trajectories[&start.id];
+        let mut pose = start.start.unwrap().mean;
+        let mut moved = 0.0;
+        for r in s.log.records.iter().filter(|r| r.robot == start.id) {
+            let inc = r
+                .motion
+                .as_ref()
+                .unwrap()
+                .increment(&AckermannParams::default());
+            pose = pose.compose(&Pose2::new(
+                scale[0] * inc.x,
+                scale[0] * inc.y,
+                scale[1] * inc.theta,
+            ));
+            moved += inc.x.hypot(inc.y);
+            let err = pose.distance(&truth[r.seq as usize + 1].pose);
+            assert!(err < 1e-9, "at t={}: {err}", r.t);
+        }
+        assert!(moved > 1.0);
+        // The controller steers from the true pose, so the commands differ from the
+        // unscaled run's, but the first record's do not.
+        assert_eq!(s.log.records[0].motion, plain.log.records[0].motion);
     }
 
     /// The true motion and measurements scatter around the logged commands and the truth
@@ -1178,6 +1242,13 @@ mod tests {
                     ..quiet()
                 },
                 "true_motion_noise.trans_per_m",
+            ),
+            (
+                SimConfig {
+                    odometry_scale: [1.0, 0.0],
+                    ..quiet()
+                },
+                "odometry_scale",
             ),
             (
                 SimConfig {

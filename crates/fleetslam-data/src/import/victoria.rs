@@ -347,6 +347,7 @@ pub fn import_victoria_park(dir: &Path, opts: &VictoriaOptions) -> Result<Import
         motion_model: MotionModel::Ackermann,
         ackermann: Some(AckermannParams::VICTORIA_PARK),
         motion_noise: Some(suggested_motion_noise()),
+        odometry_calibration: None,
         sensor_noise: Some(suggested_sensor_noise()),
         sighting_noise: None,
         sensor_range: Some(sensor_range),

@@ -40,7 +40,9 @@ impl DeferSampling {
 
 /// Online odometry calibration: each particle carries, per robot, a scale on the distance
 /// and one on the rotation of every motion increment, drawn at the robot's start from
-/// `N(1, std²)` and moved by a random walk of `walk_per_sqrt_s · √dt` per record, so that
+/// `N(1, std²)` and moved by a random walk of `walk_per_sqrt_s · √dt` per record (`dt` the
+/// record's motion duration; for an odometry increment or a record without motion, the
+/// time since the robot's previous record, uncapped), so that
 /// particles whose scales fit the robot's odometry survive resampling (the increment
 /// `(dx, dy, dθ)` becomes `(s_d dx, s_d dy, s_θ dθ)`, first order in the scale error of
 /// an arc). Wheel radii and track widths wear and differ from their nominal values, and

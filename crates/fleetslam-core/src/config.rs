@@ -54,39 +54,25 @@ impl DeferSampling {
 /// they cost accuracy (simulations, 120 s, 100 particles, prior 0.05, walk 0.001/√s: team
 /// ATE 0.036 → 0.073 m with 3 robots and 20 landmarks, 0.112 → 0.223 m with 8 landmarks in
 /// a 60° wedge), and so does a short run (`cargo run --release --example filter_seeds --
-/// sims`). A zero standard deviation keeps that scale at 1 and draws nothing; the default
-/// is off.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+/// sims`). A zero standard deviation and walk keep that scale at 1; with all four zero (the
+/// default) calibration is off and draws nothing.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct OdometryCalibration {
     /// Prior standard deviation of the distance scale (dimensionless). Default 0 (off).
     pub distance_std: f64,
     /// Prior standard deviation of the rotation scale (dimensionless). Default 0 (off).
     pub rotation_std: f64,
-    /// Random walk of the distance scale, per √s of motion time. Default 0.
+    /// Random walk of the distance scale, per √s of the record's `dt` (above). Default 0.
     pub distance_walk_per_sqrt_s: f64,
-    /// Random walk of the rotation scale, per √s of motion time. Default 0.
+    /// Random walk of the rotation scale, per √s of the record's `dt` (above). Default 0.
     pub rotation_walk_per_sqrt_s: f64,
-}
-
-impl Default for OdometryCalibration {
-    fn default() -> Self {
-        Self {
-            distance_std: 0.0,
-            rotation_std: 0.0,
-            distance_walk_per_sqrt_s: 0.0,
-            rotation_walk_per_sqrt_s: 0.0,
-        }
-    }
 }
 
 impl OdometryCalibration {
     /// Whether any scale is estimated (draws random numbers).
     pub fn enabled(&self) -> bool {
-        self.distance_std > 0.0
-            || self.rotation_std > 0.0
-            || self.distance_walk_per_sqrt_s > 0.0
-            || self.rotation_walk_per_sqrt_s > 0.0
+        self.distance_std > 0.0 || self.rotation_std > 0.0 || self.walks()
     }
 
     /// Whether the random walk moves a scale.

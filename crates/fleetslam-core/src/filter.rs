@@ -39,7 +39,7 @@
 use crate::config::{Association, ConfigError, FastSlamVersion, FilterConfig, OdometryCalibration};
 use crate::log::Record;
 use crate::map::{Landmark, LandmarkMap};
-use crate::motion::{Motion, covariance_in_world};
+use crate::motion::{Motion, covariance_in_world, scale_increment};
 use crate::pose::{Pose2, PoseGaussian, weighted_mean_pose, wrap_angle};
 use crate::resample::{normalize_log_weights, systematic};
 use crate::rng::{LANE_ADD_ROBOT, LANE_CALIBRATION, LANE_RESAMPLE, stream};
@@ -1366,7 +1366,7 @@ fn scaled_increment(ctx: &StepCtx<'_>, p: &mut Particle, rng: &mut ChaCha8Rng) -
         s[0] += cal.distance_walk_per_sqrt_s * sq * rng.sample::<f64, _>(StandardNormal);
         s[1] += cal.rotation_walk_per_sqrt_s * sq * rng.sample::<f64, _>(StandardNormal);
     }
-    Pose2::new(s[0] * ctx.inc.x, s[0] * ctx.inc.y, s[1] * ctx.inc.theta)
+    scale_increment(&ctx.inc, *s)
 }
 
 /// One work item: `chunk` holds particles `base..base + chunk.len()`.

@@ -114,6 +114,14 @@ pub fn velocity_increment(v: f64, w: f64, dt: f64) -> Pose2 {
     }
 }
 
+/// An increment as odometry scales `[distance, rotation]` see it: `(d dx, d dy, r dθ)`,
+/// first order in the scale error of an arc. The filter's odometry calibration and the
+/// simulator's biased odometry both use it.
+#[inline]
+pub fn scale_increment(inc: &Pose2, [d, r]: [f64; 2]) -> Pose2 {
+    Pose2::new(d * inc.x, d * inc.y, r * inc.theta)
+}
+
 /// Vehicle constants of the Ackermann model. Defaults are the Victoria Park utility car
 /// (Guivant and Nebot 2000): the pose tracked is the laser's position.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

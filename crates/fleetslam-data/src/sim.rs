@@ -72,7 +72,7 @@ use fleetslam_core::log::{
     SensorRange, record_order,
 };
 use fleetslam_core::motion::{
-    AckermannParams, Motion, MotionModel, MotionNoise, velocity_increment,
+    AckermannParams, Motion, MotionModel, MotionNoise, scale_increment, velocity_increment,
 };
 use fleetslam_core::pose::{Pose2, PoseGaussian, wrap_angle};
 use fleetslam_core::sensor::{LandmarkKind, SensorNoise};
@@ -527,11 +527,11 @@ fn drive(cfg: &SimConfig, robot: usize) -> RobotRun {
         let var = cfg.true_motion_noise.variances(&inc, cfg.record_period);
         // Always three draws, so the stream stays aligned whatever the noise levels.
         let e: [f64; 3] = std::array::from_fn(|k| var[k].sqrt() * normal(&mut noise_rng));
-        let [sd, sr] = cfg.odometry_scale;
+        let true_inc = scale_increment(&inc, cfg.odometry_scale);
         pose = pose.compose(&Pose2::new(
-            sd * inc.x + e[0],
-            sd * inc.y + e[1],
-            sr * inc.theta + e[2],
+            true_inc.x + e[0],
+            true_inc.y + e[1],
+            true_inc.theta + e[2],
         ));
         motions.push(match cfg.motion_model {
             MotionModel::Odometry => Motion::Odometry([inc.x, inc.y, inc.theta]),
@@ -851,6 +851,43 @@ mod tests {
         );
     }
 
+    /// Integrates each robot's logged commands from its start, each increment `(dx, dy, dθ)`
+    /// taken as `(d dx, d dy, r dθ)` for `scale = [d, r]`, and checks every record's pose
+    /// against the truth within `tol`; returns the distance each robot's commands cover.
+    fn check_commands_against_truth(
+        s: &Simulated,
+        scale: [f64; 2],
+        tol: f64,
+        label: &str,
+    ) -> Vec<f64> {
+        let mut moved = Vec::new();
+        for start in &s.log.header.robots {
+            let truth = &s.truth.trajectories[&start.id];
+            let mut pose = start.start.unwrap().mean;
+            assert_eq!(pose, truth[0].pose);
+            let mut distance = 0.0;
+            for r in s.log.records.iter().filter(|r| r.robot == start.id) {
+                let inc = r
+                    .motion
+                    .as_ref()
+                    .unwrap()
+                    .increment(&AckermannParams::default());
+                pose = pose.compose(&Pose2::new(
+                    scale[0] * inc.x,
+                    scale[0] * inc.y,
+                    scale[1] * inc.theta,
+                ));
+                distance += inc.x.hypot(inc.y);
+                let k = r.seq as usize + 1;
+                assert!((truth[k].t - r.t).abs() < 1e-12);
+                let err = pose.distance(&truth[k].pose);
+                assert!(err < tol, "{label} robot {} at t={}: {err}", start.id, r.t);
+            }
+            moved.push(distance);
+        }
+        moved
+    }
+
     /// Integrating the logged commands without noise from the start stays near the truth;
     /// with zero true noise it lands exactly on it.
     #[test]
@@ -864,28 +901,7 @@ mod tests {
                     ..SimConfig::default()
                 };
                 let s = simulate(&cfg).unwrap();
-                for start in &s.log.header.robots {
-                    let truth = &s.truth.trajectories[&start.id];
-                    let mut pose = start.start.unwrap().mean;
-                    assert_eq!(pose, truth[0].pose);
-                    for r in s.log.records.iter().filter(|r| r.robot == start.id) {
-                        let inc = r
-                            .motion
-                            .as_ref()
-                            .unwrap()
-                            .increment(&AckermannParams::default());
-                        pose = pose.compose(&inc);
-                        let k = r.seq as usize + 1;
-                        assert!((truth[k].t - r.t).abs() < 1e-12);
-                        let err = pose.distance(&truth[k].pose);
-                        assert!(
-                            err < tol,
-                            "{model:?} robot {} at t={}: {err}",
-                            start.id,
-                            r.t
-                        );
-                    }
-                }
+                check_commands_against_truth(&s, [1.0, 1.0], tol, &format!("{model:?}"));
             }
         }
     }
@@ -907,26 +923,8 @@ mod tests {
             ..cfg.clone()
         })
         .unwrap();
-        let start = &s.log.header.robots[0];
-        let truth = &s.truth.trajectories[&start.id];
-        let mut pose = start.start.unwrap().mean;
-        let mut moved = 0.0;
-        for r in s.log.records.iter().filter(|r| r.robot == start.id) {
-            let inc = r
-                .motion
-                .as_ref()
-                .unwrap()
-                .increment(&AckermannParams::default());
-            pose = pose.compose(&Pose2::new(
-                scale[0] * inc.x,
-                scale[0] * inc.y,
-                scale[1] * inc.theta,
-            ));
-            moved += inc.x.hypot(inc.y);
-            let err = pose.distance(&truth[r.seq as usize + 1].pose);
-            assert!(err < 1e-9, "at t={}: {err}", r.t);
-        }
-        assert!(moved > 1.0);
+        let moved = check_commands_against_truth(&s, scale, 1e-9, "scaled");
+        assert!(moved.iter().all(|&d| d > 1.0), "{moved:?}");
         // The controller steers from the true pose, so the commands differ from the
         // unscaled run's, but the first record's do not.
         assert_eq!(s.log.records[0].motion, plain.log.records[0].motion);

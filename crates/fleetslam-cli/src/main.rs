@@ -552,12 +552,14 @@ fn cmd_run(a: RunArgs) -> Result<()> {
     learned::write_recorded(recorder.as_deref(), &a.learned)?;
     let m = &out.metrics;
     println!(
-        "{} steps in {:.2} s (step p50 {:.3} ms, p95 {:.3} ms, max {:.3} ms); {} landmark updates at {:.0} ns each; {} landmarks; {} resamples -> {}",
+        "{} steps in {:.2} s (step p50 {:.3} ms, p95 {:.3} ms, max {:.3} ms; {:.0} ns per particle and record, {:.0} per particle and observation); {} landmark updates at {:.0} ns each; {} landmarks; {} resamples -> {}",
         m.steps,
         m.wall_time_s,
         m.step_ms_p50,
         m.step_ms_p95,
         m.step_ms_max,
+        m.ns_per_particle_record,
+        m.ns_per_particle_observation,
         m.landmark_updates,
         m.ns_per_landmark_update,
         m.landmarks,

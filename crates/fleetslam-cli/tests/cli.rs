@@ -48,10 +48,24 @@ fn simulate_run_evaluate() {
         "step_ms_max",
         "landmark_updates",
         "ns_per_landmark_update",
+        "ns_per_particle_record",
+        "ns_per_particle_observation",
     ] {
         assert!(m[key].is_number(), "metrics.json lacks {key}: {m}");
     }
     assert!(m["landmark_updates"].as_u64().unwrap() > 0);
+    // The per-particle costs are the wall time spread over particles and records (or
+    // landmark observations, which the simulated robots make).
+    let per = |k: &str| m[k].as_f64().unwrap();
+    let wall_ns = per("wall_time_s") * 1e9;
+    let particles = per("particles");
+    let steps = per("steps");
+    assert!(per("ns_per_particle_record") > 0.0);
+    assert!(
+        (per("ns_per_particle_record") * particles * steps - wall_ns).abs() <= 1e-6 * wall_ns,
+        "{m}"
+    );
+    assert!(per("ns_per_particle_observation") > 0.0);
     let printed = ok(&["evaluate", &d("run"), "--truth", &d("sim/truth")]);
     assert!(printed.contains("team"), "{printed}");
     let e = json(&dir.path().join("run/evaluation.json"));

@@ -235,6 +235,13 @@ impl AssociationParams {
     }
 }
 
+/// Work items per rayon thread in a filter step: a step splits its particles into this many
+/// contiguous work items per thread, so that every thread gets work and an uneven item
+/// (a particle that associates more) can be balanced, while each item's set-up (scratch
+/// buffers, loops over the record's observations) is paid a few times per step, not once per
+/// `batch_size` particles. Results do not depend on it (every draw is keyed by particle).
+pub const WORK_ITEMS_PER_THREAD: usize = 4;
+
 /// ln(2π).
 pub(crate) const LN_2PI: f64 = 1.837_877_066_409_345_3;
 
@@ -291,8 +298,10 @@ pub struct FilterConfig {
     pub resample_threshold: f64,
     /// Seed of every random draw. Default 0.
     pub seed: u64,
-    /// Particles per work item and per updater batch. Default 64: large enough to amortise a
-    /// batched updater, small enough to spread over threads.
+    /// The most landmark updates one call of the updater's `update_batch` gets (the
+    /// particles of a work item that update a landmark with one observation). Default 64:
+    /// large enough to amortise a batched (learned) updater. Work items themselves are sized
+    /// by the thread count ([`WORK_ITEMS_PER_THREAD`]), not by this.
     pub batch_size: usize,
     /// The landmark updater: `ekf` (default) or the id of a learned model. [`FastSlam::new`]
     /// builds the EKF; a learned updater is built by its crate and passed to

@@ -32,14 +32,18 @@
 //!    a landmark is reported only once observed `confirm_hits` times.
 //! 6. **Resampling.** Systematic, when the effective sample size falls below a fraction of N.
 //!
-//! Particles are processed in parallel with rayon, in work items of `batch_size` particles.
+//! Particles are processed in parallel with rayon, in [`WORK_ITEMS_PER_THREAD`] work items
+//! per thread (the updater gets at most `batch_size` updates per call).
 //! Every random draw comes from a stream keyed by (seed, step, particle), so the results are
 //! bit-identical for any number of threads.
 
-use crate::config::{Association, ConfigError, FastSlamVersion, FilterConfig, OdometryCalibration};
+use crate::config::{
+    Association, ConfigError, FastSlamVersion, FilterConfig, OdometryCalibration,
+    WORK_ITEMS_PER_THREAD,
+};
 use crate::log::Record;
 use crate::map::{Landmark, LandmarkMap};
-use crate::motion::{Motion, covariance_in_world, scale_increment};
+use crate::motion::{Motion, covariance_in_world_sc, scale_increment};
 use crate::pose::{Pose2, PoseGaussian, weighted_mean_pose, wrap_angle};
 use crate::resample::{normalize_log_weights, systematic};
 use crate::rng::{LANE_ADD_ROBOT, LANE_CALIBRATION, LANE_RESAMPLE, stream};
@@ -121,6 +125,11 @@ pub struct RobotState {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct FilterStats {
     pub steps: u64,
+    /// Landmark observations the steps applied (each record's, once; those without an id
+    /// under known association are not applied and not counted). Zero in snapshots written
+    /// before it existed.
+    #[serde(default)]
+    pub observations: u64,
     /// Landmark updates computed by the updater (one per particle and observation).
     pub landmark_updates: u64,
     /// Time spent inside the updater's batch calls, summed over threads [ns].
@@ -240,6 +249,39 @@ pub struct FastSlam {
     step: u64,
     ess: f64,
     stats: FilterStats,
+    /// Thresholds derived from the (immutable) configuration once, not per step.
+    derived: Derived,
+}
+
+/// The association thresholds and clutter densities that follow from a configuration (χ²
+/// quantiles by bisection: too slow to recompute on every step).
+#[derive(Debug, Clone, Copy)]
+struct Derived {
+    /// Gate and new-landmark threshold (squared Mahalanobis distances) for the run's
+    /// measurement dimension.
+    gate: f64,
+    new_landmark: f64,
+    /// Log density of a landmark observation that no mapped landmark explains.
+    clutter: f64,
+    /// The same for a robot sighting (range-bearing, the sighting noise).
+    sighting_clutter: f64,
+}
+
+impl Derived {
+    fn of(cfg: &FilterConfig) -> Self {
+        let dim = cfg.landmark_kind.dim();
+        let q_logdet = match cfg.landmark_kind {
+            LandmarkKind::RangeBearing2d => cfg.sensor_noise.q2().determinant().ln(),
+            LandmarkKind::Point3d => cfg.sensor_noise.q3().determinant().ln(),
+        };
+        let a = &cfg.association_params;
+        Self {
+            gate: a.gate_for(dim),
+            new_landmark: a.new_landmark_for(dim),
+            clutter: a.clutter_for(dim, q_logdet),
+            sighting_clutter: a.clutter_for(2, cfg.sighting_noise.q2().determinant().ln()),
+        }
+    }
 }
 
 /// What a particle does with one observation.
@@ -323,6 +365,7 @@ impl FastSlam {
             })
             .collect();
         Ok(Self {
+            derived: Derived::of(&config),
             config,
             updater,
             robots: Vec::new(),
@@ -554,12 +597,7 @@ impl FastSlam {
             }
         }
 
-        let dim = cfg.landmark_kind.dim();
-        let q_logdet = match cfg.landmark_kind {
-            LandmarkKind::RangeBearing2d => cfg.sensor_noise.q2().determinant().ln(),
-            LandmarkKind::Point3d => cfg.sensor_noise.q3().determinant().ln(),
-        };
-        let a = &cfg.association_params;
+        let d = self.derived;
         let ctx = StepCtx {
             cfg,
             updater: self.updater.as_ref(),
@@ -572,15 +610,15 @@ impl FastSlam {
             sightings: &sightings,
             step: self.step,
             known_len,
-            gate: a.gate_for(dim),
-            new_landmark: a.new_landmark_for(dim),
-            clutter: a.clutter_for(dim, q_logdet),
-            sighting_clutter: a.clutter_for(2, cfg.sighting_noise.q2().determinant().ln()),
+            gate: d.gate,
+            new_landmark: d.new_landmark,
+            clutter: d.clutter,
+            sighting_clutter: d.sighting_clutter,
             defer: cfg.defer_pose_sampling.defers(self.robots.len()),
         };
         let best_before = self.best_index();
         let slots_before = self.particles[best_before].map.len();
-        let batch = cfg.batch_size;
+        let batch = work_item_len(self.particles.len(), rayon::current_num_threads());
         let step_stats = self
             .particles
             .par_chunks_mut(batch)
@@ -597,6 +635,7 @@ impl FastSlam {
         self.stats.ignored_observations += ignored_no_id as u64;
         self.stats.unmatched_sightings += unmatched;
         self.stats.steps += 1;
+        self.stats.observations += obs.len() as u64;
 
         let mut log_w: Vec<f64> = self.particles.iter().map(|p| p.log_w).collect();
         self.ess = normalize_log_weights(&mut log_w);
@@ -832,6 +871,7 @@ impl FastSlam {
             .map(|(i, r)| (r.id.clone(), i))
             .collect();
         Ok(Self {
+            derived: Derived::of(&s.config),
             config: s.config,
             updater,
             robots: s.robots,
@@ -843,6 +883,14 @@ impl FastSlam {
             stats: s.stats,
         })
     }
+}
+
+/// Particles per work item of a step: the particles spread over
+/// [`WORK_ITEMS_PER_THREAD`] items per thread.
+fn work_item_len(particles: usize, threads: usize) -> usize {
+    particles
+        .div_ceil(threads.max(1) * WORK_ITEMS_PER_THREAD)
+        .max(1)
 }
 
 fn check_updater(cfg: &FilterConfig, u: &dyn LandmarkUpdater) -> Result<(), FilterError> {
@@ -894,10 +942,9 @@ fn upper3(m: &Matrix3<f64>) -> [f64; 6] {
     [m[(0, 0)], s(0, 1), s(0, 2), m[(1, 1)], s(1, 2), m[(2, 2)]]
 }
 
-/// Jacobian of `prev ⊕ inc` with respect to `prev`.
+/// Jacobian of `prev ⊕ inc` with respect to `prev`, given `prev.theta.sin_cos()`.
 #[inline]
-fn compose_jacobian(prev: &Pose2, inc: &Pose2) -> Matrix3<f64> {
-    let (s, c) = prev.theta.sin_cos();
+fn compose_jacobian((s, c): (f64, f64), inc: &Pose2) -> Matrix3<f64> {
     Matrix3::new(
         1.0,
         0.0,
@@ -1378,9 +1425,6 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
     let q = q_matrix(cfg);
     let outlier = cfg.association_params.outlier;
     let mut stats = FilterStats::default();
-    let mut rngs: Vec<ChaCha8Rng> = (0..n)
-        .map(|i| stream(cfg.seed, ctx.step, (base + i) as u64))
-        .collect();
     if ctx.known_len > 0 {
         for p in chunk.iter_mut() {
             p.map.ensure_slots(ctx.known_len);
@@ -1404,7 +1448,9 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
     for (i, p) in chunk.iter_mut().enumerate() {
         let prev = p.poses[r];
         let prev_cov = p.pose_covs[r];
-        let rng = &mut rngs[i];
+        // The particle's stream of this step, set up here: a generator is a few hundred
+        // bytes, too many to gather for a whole work item.
+        let rng = &mut stream(cfg.seed, ctx.step, (base + i) as u64);
         let acts = &mut actions[i * nobs..(i + 1) * nobs];
         let bll = &mut best_ll[i * nobs..(i + 1) * nobs];
         let point = prev_cov.iter().all(|v| *v == 0.0);
@@ -1413,10 +1459,11 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
         } else {
             ctx.inc
         };
-        let mean0 = prev.compose(&inc);
-        let mut pc0 = covariance_in_world(&prev, &ctx.var);
+        let sc = prev.theta.sin_cos();
+        let mean0 = prev.compose_sc(&inc, sc);
+        let mut pc0 = covariance_in_world_sc(sc, &ctx.var);
         if !point {
-            let f = compose_jacobian(&prev, &inc);
+            let f = compose_jacobian(sc, &inc);
             pc0 += f * sym3(&prev_cov) * f.transpose();
         }
         if defer {
@@ -1535,7 +1582,12 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
         outputs.clear();
         outputs.resize(inputs.len(), UpdateOutput::default());
         let t0 = Instant::now();
-        ctx.updater.update_batch(&inputs, &mut outputs);
+        for (i, o) in inputs
+            .chunks(cfg.batch_size)
+            .zip(outputs.chunks_mut(cfg.batch_size))
+        {
+            ctx.updater.update_batch(i, o);
+        }
         stats.update_nanos += t0.elapsed().as_nanos() as u64;
         stats.landmark_updates += inputs.len() as u64;
         for (&(i, s, weigh), out) in who.iter().zip(&outputs) {
@@ -1685,7 +1737,7 @@ mod tests {
     use super::*;
     use crate::config::DeferSampling;
     use crate::log::LandmarkObservation;
-    use crate::motion::MotionNoise;
+    use crate::motion::{MotionNoise, covariance_in_world};
 
     fn still() -> MotionNoise {
         MotionNoise {

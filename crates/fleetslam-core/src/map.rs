@@ -2,20 +2,30 @@
 //!
 //! Montemerlo's log(N) FastSLAM stores each particle's landmarks in a balanced tree whose
 //! nodes are shared between particles: resampling copies a pointer, and updating one
-//! landmark copies only the path from the root to it. [`LandmarkMap`] gets the same
-//! behaviour from `rpds::Vector` (a persistent bit-partitioned trie of `Arc` nodes) with a
-//! branching factor of 8: an update copies about log₈ M small nodes, a resample copies none.
+//! landmark copies only the path from the root to it. [`LandmarkMap`] is such a tree: a
+//! bit-partitioned trie whose branch nodes have [`BRANCH`] children behind `Arc`s and whose
+//! leaves hold [`LEAF`] landmarks inline. Reading a landmark follows about log₈(M/4)
+//! pointers; writing one copies the nodes of its path only where another map shares them
+//! (`Arc::make_mut`), so a particle that updates the same leaf twice in a step copies it
+//! once, and a resample copies nothing but the root pointer. Landmarks are not behind
+//! pointers of their own: a leaf copy is one allocation, and freeing it touches no per
+//! landmark counter. (`rpds`/`imbl` vectors either keep every element behind its own
+//! reference count or copy 64-element chunks; neither fits a map written on every
+//! observation.)
 //!
 //! Slots are never reused within a particle: a removed (spurious) landmark leaves an empty
 //! slot, so a slot number names one landmark for the life of the map.
 
 use crate::updater::LandmarkGaussian;
-use rpds::vector::VectorSync;
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
+use std::sync::Arc;
 
-/// Branching factor 2^3 = 8: shallow enough to be fast, narrow enough that a copied node is
-/// small.
-const BITS: u8 = 3;
+/// Children of a branch node: 2^3.
+pub const BRANCH: usize = 1 << BRANCH_BITS;
+const BRANCH_BITS: u32 = 3;
+/// Landmarks in a leaf: 2^2. Small, because an update copies its whole (shared) leaf.
+pub const LEAF: usize = 1 << LEAF_BITS;
+const LEAF_BITS: u32 = 2;
 
 /// One landmark of one particle's map.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -30,25 +40,36 @@ pub struct Landmark {
     pub hits: u32,
 }
 
-/// A persistent map of landmark slots.
 #[derive(Debug, Clone)]
-pub struct LandmarkMap {
-    slots: VectorSync<Option<Landmark>>,
-    live: usize,
+enum Node {
+    Branch([Option<Arc<Node>>; BRANCH]),
+    Leaf([Option<Landmark>; LEAF]),
 }
 
-impl Default for LandmarkMap {
-    fn default() -> Self {
-        Self {
-            slots: VectorSync::new_with_bits(BITS),
-            live: 0,
+impl Node {
+    fn empty(leaf: bool) -> Node {
+        if leaf {
+            Node::Leaf([None; LEAF])
+        } else {
+            Node::Branch(Default::default())
         }
     }
 }
 
+/// A persistent map of landmark slots.
+#[derive(Debug, Clone, Default)]
+pub struct LandmarkMap {
+    root: Option<Arc<Node>>,
+    /// Branch levels above the leaves; the trie holds `LEAF · BRANCH^height` slots.
+    height: u32,
+    /// Number of slots (including empty ones).
+    slots: usize,
+    live: usize,
+}
+
 impl PartialEq for LandmarkMap {
     fn eq(&self, other: &Self) -> bool {
-        self.live == other.live && self.slots == other.slots
+        self.slots == other.slots && self.live == other.live && self.iter().eq(other.iter())
     }
 }
 
@@ -59,7 +80,7 @@ impl LandmarkMap {
 
     /// Number of slots (including removed ones).
     pub fn slots(&self) -> usize {
-        self.slots.len()
+        self.slots
     }
 
     /// Number of landmarks present.
@@ -71,30 +92,97 @@ impl LandmarkMap {
         self.live == 0
     }
 
+    fn capacity(height: u32) -> usize {
+        LEAF << (BRANCH_BITS * height)
+    }
+
+    /// The child index of `slot` at branch `level` (0 = just above the leaves).
+    #[inline]
+    fn child(slot: usize, level: u32) -> usize {
+        (slot >> (LEAF_BITS + BRANCH_BITS * level)) & (BRANCH - 1)
+    }
+
+    #[inline]
     pub fn get(&self, slot: usize) -> Option<&Landmark> {
-        self.slots.get(slot).and_then(|s| s.as_ref())
+        if slot >= self.slots {
+            return None;
+        }
+        let mut node = self.root.as_deref()?;
+        for level in (0..self.height).rev() {
+            match node {
+                Node::Branch(c) => node = c[Self::child(slot, level)].as_deref()?,
+                Node::Leaf(_) => unreachable!("a leaf above the leaf level"),
+            }
+        }
+        match node {
+            Node::Leaf(l) => l[slot & (LEAF - 1)].as_ref(),
+            Node::Branch(_) => unreachable!("a branch at the leaf level"),
+        }
+    }
+
+    /// Grows the trie (a new root above the old one) until it can hold `len` slots.
+    fn grow_to(&mut self, len: usize) {
+        while Self::capacity(self.height) < len {
+            if let Some(old) = self.root.take() {
+                let mut c: [Option<Arc<Node>>; BRANCH] = Default::default();
+                c[0] = Some(old);
+                self.root = Some(Arc::new(Node::Branch(c)));
+            }
+            self.height += 1;
+        }
+    }
+
+    /// The slot's cell for writing: the nodes of its path are copied where shared and
+    /// created where missing. `slot` must be below `slots`.
+    fn cell_mut(&mut self, slot: usize) -> &mut Option<Landmark> {
+        debug_assert!(slot < self.slots);
+        let height = self.height;
+        let mut node = Arc::make_mut(
+            self.root
+                .get_or_insert_with(|| Arc::new(Node::empty(height == 0))),
+        );
+        for level in (0..height).rev() {
+            node = match node {
+                Node::Branch(c) => Arc::make_mut(
+                    c[Self::child(slot, level)]
+                        .get_or_insert_with(|| Arc::new(Node::empty(level == 0))),
+                ),
+                Node::Leaf(_) => unreachable!("a leaf above the leaf level"),
+            };
+        }
+        match node {
+            Node::Leaf(l) => &mut l[slot & (LEAF - 1)],
+            Node::Branch(_) => unreachable!("a branch at the leaf level"),
+        }
     }
 
     /// Adds a landmark in a new slot and returns the slot.
     pub fn push(&mut self, lm: Landmark) -> usize {
-        self.slots.push_back_mut(Some(lm));
+        let slot = self.slots;
+        self.grow_to(slot + 1);
+        self.slots += 1;
+        *self.cell_mut(slot) = Some(lm);
         self.live += 1;
-        self.slots.len() - 1
+        slot
     }
 
     /// Grows the map with empty slots up to `len` (known-id maps keep slot = id index).
     pub fn ensure_slots(&mut self, len: usize) {
-        while self.slots.len() < len {
-            self.slots.push_back_mut(None);
+        if len > self.slots {
+            self.grow_to(len);
+            self.slots = len;
         }
     }
 
     /// Puts a landmark into `slot` (which must exist), replacing what was there.
     pub fn set(&mut self, slot: usize, lm: Landmark) {
-        let was_live = self.get(slot).is_some();
-        let ok = self.slots.set_mut(slot, Some(lm));
-        debug_assert!(ok, "slot {slot} out of range");
-        if ok && !was_live {
+        debug_assert!(slot < self.slots, "slot {slot} out of range");
+        if slot >= self.slots {
+            return;
+        }
+        let cell = self.cell_mut(slot);
+        let was_live = cell.replace(lm).is_some();
+        if !was_live {
             self.live += 1;
         }
     }
@@ -102,23 +190,73 @@ impl LandmarkMap {
     /// Removes the landmark in `slot`, leaving the slot empty.
     pub fn remove(&mut self, slot: usize) {
         if self.get(slot).is_some() {
-            self.slots.set_mut(slot, None);
+            *self.cell_mut(slot) = None;
             self.live -= 1;
         }
     }
 
-    /// Present landmarks with their slots.
-    pub fn iter(&self) -> impl Iterator<Item = (usize, &Landmark)> {
-        self.slots
-            .iter()
-            .enumerate()
-            .filter_map(|(i, s)| s.as_ref().map(|l| (i, l)))
+    /// Present landmarks with their slots, in slot order.
+    pub fn iter(&self) -> Iter<'_> {
+        let mut stack = Vec::with_capacity(self.height as usize + 1);
+        if let Some(root) = self.root.as_deref() {
+            stack.push((root, 0usize, 0usize));
+        }
+        Iter {
+            stack,
+            height: self.height,
+        }
+    }
+}
+
+/// Iterator over a map's present landmarks ([`LandmarkMap::iter`]): a depth-first walk.
+#[derive(Debug)]
+pub struct Iter<'a> {
+    /// (node, its first slot, next child or cell), from the root down.
+    stack: Vec<(&'a Node, usize, usize)>,
+    height: u32,
+}
+
+impl<'a> Iterator for Iter<'a> {
+    type Item = (usize, &'a Landmark);
+
+    fn next(&mut self) -> Option<Self::Item> {
+        loop {
+            let depth = self.stack.len() as u32;
+            let (node, base, next) = self.stack.last_mut()?;
+            let node: &'a Node = node;
+            match node {
+                Node::Leaf(l) => {
+                    while *next < LEAF {
+                        let i = *next;
+                        *next += 1;
+                        if let Some(lm) = &l[i] {
+                            return Some((*base + i, lm));
+                        }
+                    }
+                }
+                Node::Branch(c) => {
+                    // This node is at branch level `height - depth`, its children one below.
+                    let shift = LEAF_BITS + BRANCH_BITS * (self.height - depth);
+                    let mut child = None;
+                    while *next < BRANCH && child.is_none() {
+                        let i = *next;
+                        *next += 1;
+                        child = c[i].as_deref().map(|n| (n, *base + (i << shift)));
+                    }
+                    if let Some((n, b)) = child {
+                        self.stack.push((n, b, 0));
+                        continue;
+                    }
+                }
+            }
+            self.stack.pop();
+        }
     }
 }
 
 impl Serialize for LandmarkMap {
     fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        s.collect_seq(self.slots.iter())
+        s.collect_seq((0..self.slots).map(|i| self.get(i)))
     }
 }
 
@@ -126,11 +264,11 @@ impl<'de> Deserialize<'de> for LandmarkMap {
     fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
         let v: Vec<Option<Landmark>> = Vec::deserialize(d)?;
         let mut m = LandmarkMap::default();
-        for s in v {
-            if s.is_some() {
-                m.live += 1;
+        m.ensure_slots(v.len());
+        for (i, s) in v.into_iter().enumerate() {
+            if let Some(lm) = s {
+                m.set(i, lm);
             }
-            m.slots.push_back_mut(s);
         }
         Ok(m)
     }
@@ -178,6 +316,81 @@ mod tests {
         let b: LandmarkMap = serde_json::from_str(&json).unwrap();
         assert_eq!(a, b);
         assert_eq!(b.len(), 1);
+    }
+
+    /// The map against a plain vector under random pushes, sets, removes and clones: the
+    /// same contents, and a clone never sees the original's later writes.
+    #[test]
+    fn matches_a_vector_model_through_copies() {
+        use proptest::prelude::*;
+        let op = (0u8..4, 0usize..400, -1e3f64..1e3);
+        proptest!(ProptestConfig::with_cases(64), |(ops in proptest::collection::vec(op, 1..600))| {
+            let mut map = LandmarkMap::new();
+            let mut model: Vec<Option<Landmark>> = Vec::new();
+            let mut frozen: Vec<(LandmarkMap, Vec<Option<Landmark>>)> = Vec::new();
+            for (kind, at, x) in ops {
+                match kind {
+                    0 => {
+                        let s = map.push(lm(x));
+                        prop_assert_eq!(s, model.len());
+                        model.push(Some(lm(x)));
+                    }
+                    1 if !model.is_empty() => {
+                        let s = at % model.len();
+                        map.set(s, lm(x));
+                        model[s] = Some(lm(x));
+                    }
+                    2 if !model.is_empty() => {
+                        let s = at % model.len();
+                        map.remove(s);
+                        model[s] = None;
+                    }
+                    _ => {
+                        map.ensure_slots(model.len() + at % 9);
+                        model.resize(model.len() + at % 9, None);
+                        frozen.push((map.clone(), model.clone()));
+                    }
+                }
+            }
+            frozen.push((map, model));
+            for (map, model) in &frozen {
+                prop_assert_eq!(map.slots(), model.len());
+                prop_assert_eq!(map.len(), model.iter().flatten().count());
+                for (s, want) in model.iter().enumerate() {
+                    prop_assert_eq!(map.get(s), want.as_ref());
+                }
+                prop_assert_eq!(map.get(model.len()), None);
+                let listed: Vec<(usize, Landmark)> = map.iter().map(|(s, l)| (s, *l)).collect();
+                let want: Vec<(usize, Landmark)> = model
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(s, l)| l.map(|l| (s, l)))
+                    .collect();
+                prop_assert_eq!(listed, want);
+                let json = serde_json::to_string(map).unwrap();
+                let back: LandmarkMap = serde_json::from_str(&json).unwrap();
+                prop_assert_eq!(&back, map);
+            }
+        });
+    }
+
+    #[test]
+    fn a_write_copies_only_a_shared_path() {
+        let mut a = LandmarkMap::new();
+        for i in 0..1000 {
+            a.push(lm(i as f64));
+        }
+        let b = a.clone();
+        a.set(500, lm(-5.0));
+        // The untouched leaves are still shared with the clone; the written one is not.
+        let leaf_of = |m: &LandmarkMap, slot: usize| m.get(slot).unwrap() as *const Landmark;
+        assert_eq!(leaf_of(&a, 4), leaf_of(&b, 4));
+        assert_ne!(leaf_of(&a, 500), leaf_of(&b, 500));
+        // A second write to the now unshared leaf copies nothing.
+        let before = leaf_of(&a, 501);
+        a.set(501, lm(-6.0));
+        assert_eq!(leaf_of(&a, 501), before);
+        assert_eq!(b.get(500).unwrap().gaussian.mean[0], 500.0);
     }
 
     #[test]

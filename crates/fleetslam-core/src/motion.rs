@@ -266,7 +266,12 @@ impl MotionNoise {
 /// `e` with the given (longitudinal, lateral, heading) variances.
 #[inline]
 pub fn covariance_in_world(prev: &Pose2, var: &[f64; 3]) -> Matrix3<f64> {
-    let (s, c) = prev.theta.sin_cos();
+    covariance_in_world_sc(prev.theta.sin_cos(), var)
+}
+
+/// [`covariance_in_world`] given the sine and cosine of the previous heading.
+#[inline]
+pub fn covariance_in_world_sc((s, c): (f64, f64), var: &[f64; 3]) -> Matrix3<f64> {
     let j = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
     j * Matrix3::from_diagonal(&Vector3::new(var[0], var[1], var[2])) * j.transpose()
 }

@@ -32,7 +32,12 @@ impl Pose2 {
     /// `self ⊕ delta`: applies an increment expressed in this pose's frame.
     #[inline]
     pub fn compose(&self, delta: &Pose2) -> Pose2 {
-        let (s, c) = self.theta.sin_cos();
+        self.compose_sc(delta, self.theta.sin_cos())
+    }
+
+    /// [`Pose2::compose`] given `self.theta.sin_cos()`, for callers that need it anyway.
+    #[inline]
+    pub fn compose_sc(&self, delta: &Pose2, (s, c): (f64, f64)) -> Pose2 {
         Pose2 {
             x: self.x + c * delta.x - s * delta.y,
             y: self.y + s * delta.x + c * delta.y,

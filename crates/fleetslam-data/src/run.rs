@@ -58,6 +58,14 @@ pub struct RunMetrics {
     /// evaluation then needs no alignment.
     pub shared_frame: bool,
     pub threads: usize,
+    /// Wall time of the run per particle and record: `wall_time_s / (particles × steps)`
+    /// [ns]. The cost every record pays for every particle (motion, weights, resampling).
+    #[serde(default)]
+    pub ns_per_particle_record: f64,
+    /// Wall time of the run per particle and landmark observation: `wall_time_s /
+    /// (particles × observations)` [ns]; 0 for a run without observations.
+    #[serde(default)]
+    pub ns_per_particle_observation: f64,
     /// Robots that joined at an unknown pose ([`run_log_joining`]); absent otherwise.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub joiners: Vec<JoinerMetrics>,
@@ -201,6 +209,15 @@ pub fn run_log(
 }
 
 /// The output of a run from the filter's final state and the per-step timings.
+/// `wall` seconds per particle and per `count` (steps or observations), in ns; 0 when
+/// there was nothing to count.
+pub fn per_particle_ns(wall: f64, particles: usize, count: u64) -> f64 {
+    if count == 0 || particles == 0 {
+        return 0.0;
+    }
+    wall * 1e9 / (particles as f64 * count as f64)
+}
+
 fn finish(
     slam: &FastSlam,
     trajectories: std::collections::BTreeMap<String, Vec<TrajectoryPoint>>,
@@ -245,6 +262,12 @@ fn finish(
         skipped_records: skipped,
         shared_frame,
         threads: rayon::current_num_threads(),
+        ns_per_particle_record: per_particle_ns(wall, slam.config().particles, stats.steps),
+        ns_per_particle_observation: per_particle_ns(
+            wall,
+            slam.config().particles,
+            stats.observations,
+        ),
         joiners: Vec::new(),
     };
     let landmarks = landmark_rows(&est);

@@ -385,17 +385,11 @@ pub fn import_mrclam(dir: &Path, opts: &MrclamOptions) -> Result<Imported, Impor
         };
 
         // Odometry: (t + delay, [v, w]).
-        let (track, repeated) = ControlTrack::new(f.odometry.iter().map(|(_, [t, v, w])| {
-            let st: f64 = std::env::var("HACK_ST")
-                .ok()
-                .and_then(|x| x.parse().ok())
-                .unwrap_or(1.0);
-            let sr: f64 = std::env::var("HACK_SR")
-                .ok()
-                .and_then(|x| x.parse().ok())
-                .unwrap_or(1.0);
-            (t + opts.odometry_delay, [*v * st, *w * sr])
-        }));
+        let (track, repeated) = ControlTrack::new(
+            f.odometry
+                .iter()
+                .map(|(_, [t, v, w])| (t + opts.odometry_delay, [*v, *w])),
+        );
         stats.repeated_timestamps = repeated;
 
         // Measurements.

@@ -42,7 +42,7 @@ use crate::config::{
     WORK_ITEMS_PER_THREAD,
 };
 use crate::log::Record;
-use crate::map::{Landmark, LandmarkMap};
+use crate::map::{INDEX_WIDE_TRACE, Landmark, LandmarkMap};
 use crate::motion::{Motion, covariance_in_world_sc, scale_increment};
 use crate::pose::{Pose2, PoseGaussian, weighted_mean_pose, wrap_angle};
 use crate::resample::{normalize_log_weights, systematic};
@@ -1071,6 +1071,14 @@ fn q_matrix(cfg: &FilterConfig) -> Matrix3<f64> {
     }
 }
 
+/// A radius a little beyond `√d2`, so that a spatial query of it surely holds every point
+/// whose squared distance is at most `d2` despite the rounding of the root and of the
+/// query's cell bounds.
+#[inline]
+fn covering_radius(d2: f64) -> f64 {
+    d2.sqrt() * (1.0 + 1e-9) + 1e-9
+}
+
 /// The association pre-check compares the squared world distance between an observation's
 /// point and a landmark with `new_landmark` times this slack times the trace of a world-frame
 /// bound of the innovation covariance: a landmark that fails it has a squared Mahalanobis
@@ -1160,23 +1168,30 @@ fn associate_record(
     // Squared ground-plane distance from each observation's point to the nearest landmark.
     let mut nearest_d2 = vec![f64::INFINITY; ctx.obs.len()];
     let mut points = Vec::with_capacity(ctx.obs.len());
+    let sep2 = cfg.association_params.min_separation.powi(2);
     for (j, o) in ctx.obs.iter().enumerate() {
         let (wx, wy, q_world) = world_point(cfg, q, pose, &o.z);
         points.push((wx, wy));
         let pose_term = pose_term + p[(2, 2)] * (o.z[0] * o.z[0] + o.z[1] * o.z[1]);
-        for (slot, lm) in map.iter() {
+        // Every landmark that can pass the pre-check below or lie within the minimum
+        // separation is within this distance, unless its variance exceeds the index's
+        // bound (those the index always visits).
+        let reach2 = (ctx.new_landmark
+            * ((INDEX_WIDE_TRACE + q_world + pose_term) * PRECHECK_SLACK))
+            .max(sep2);
+        map.for_each_near(wx, wy, covering_radius(reach2), |slot, lm| {
             let g = &lm.gaussian;
             let d2 = (g.mean[0] - wx).powi(2) + (g.mean[1] - wy).powi(2);
             nearest_d2[j] = nearest_d2[j].min(d2);
             let bound = (g.cov[0] + g.cov[3] + q_world + pose_term) * PRECHECK_SLACK;
             if d2 > ctx.new_landmark * bound {
-                continue;
+                return;
             }
             if let Some((m2, ll)) = match_ll(kind, q, g, pose, p, &o.z) {
                 nearest_m2[j] = nearest_m2[j].min(m2);
                 pairs.push((j, slot, m2, ll));
             }
-        }
+        });
     }
     let mut cands: Vec<&(usize, usize, f64, f64)> =
         pairs.iter().filter(|c| c.2 < ctx.gate).collect();
@@ -1196,7 +1211,6 @@ fn associate_record(
         best_ll[j] = ll;
     }
     let mut fresh: Vec<LandmarkGaussian> = Vec::new();
-    let sep2 = cfg.association_params.min_separation.powi(2);
     for (j, o) in ctx.obs.iter().enumerate() {
         if assigned[j] {
             continue;
@@ -1659,17 +1673,19 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
                 let Some(l) = p.map.get(s).copied() else {
                     continue;
                 };
-                let other = p
-                    .map
-                    .iter()
-                    .filter(|(t, m)| {
-                        *t != s
-                            && (m.gaussian.mean[0] - l.gaussian.mean[0]).powi(2)
-                                + (m.gaussian.mean[1] - l.gaussian.mean[1]).powi(2)
+                // The landmark of lowest slot within the separation.
+                let mut other: Option<(usize, Landmark)> = None;
+                let (lx, ly) = (l.gaussian.mean[0], l.gaussian.mean[1]);
+                p.map
+                    .for_each_near(lx, ly, covering_radius(sep2), |t, m| {
+                        if t != s
+                            && (m.gaussian.mean[0] - lx).powi(2) + (m.gaussian.mean[1] - ly).powi(2)
                                 < sep2
-                    })
-                    .map(|(t, m)| (t, *m))
-                    .next();
+                            && other.is_none_or(|(o, _)| t < o)
+                        {
+                            other = Some((t, *m));
+                        }
+                    });
                 let Some((t, m)) = other else {
                     continue;
                 };
@@ -1698,21 +1714,25 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
         for (i, p) in chunk.iter_mut().enumerate() {
             let pose = p.poses[r];
             let seen = &observed[i];
-            let missed: Vec<(usize, Landmark)> = p
-                .map
-                .iter()
-                .filter(|(s, l)| {
-                    if seen.contains(s) {
-                        return false;
-                    }
-                    let dx = l.gaussian.mean[0] - pose.x;
-                    let dy = l.gaussian.mean[1] - pose.y;
-                    let d = dx.hypot(dy);
-                    d < range.max_range
-                        && wrap_angle(dy.atan2(dx) - pose.theta).abs() < 0.5 * range.fov
-                })
-                .map(|(s, l)| (s, *l))
-                .collect();
+            let mut missed: Vec<(usize, Landmark)> = Vec::new();
+            let reach = covering_radius(range.max_range * range.max_range);
+            p.map.for_each_near(pose.x, pose.y, reach, |s, l| {
+                if seen.contains(&s) {
+                    return;
+                }
+                let dx = l.gaussian.mean[0] - pose.x;
+                let dy = l.gaussian.mean[1] - pose.y;
+                // Beyond the covering radius it is out of range (the exact test is hypot).
+                if dx * dx + dy * dy > reach * reach {
+                    return;
+                }
+                let d = dx.hypot(dy);
+                if d < range.max_range
+                    && wrap_angle(dy.atan2(dx) - pose.theta).abs() < 0.5 * range.fov
+                {
+                    missed.push((s, *l));
+                }
+            });
             for (s, l) in missed {
                 let e = l.existence - a.existence_miss;
                 if e < 0.0 {

@@ -8,6 +8,7 @@
 //! cargo run --release --example filter_seeds -- sims [--seeds 1-5] [--particles 100]
 //! cargo run --release --example filter_seeds -- victoria [--seeds 1] [--particles 100] \
 //!     [--duration S] [--dataset DIR]
+//! cargo run --release --example filter_seeds -- speed [--seeds 1]
 //! ```
 //!
 //! `mrclam` runs MRCLAM Dataset 6 (all five robots) once per seed and prints team ATE, RPE
@@ -18,6 +19,11 @@
 //! tuned on (other noise, landmark densities, fields of view, motion), FastSLAM 2.0 with and
 //! without deferred pose sampling and 1.0, and prints team ATE per scenario. `victoria` runs
 //! Victoria Park (unknown association) and prints the ATE against GPS after SE(2) alignment.
+//! `speed` prints the filter's cost (issue 13): wall time per particle and record and per
+//! particle and landmark observation on a simulated log with 6 or more observations per
+//! record (known ids, 100 and 1,000 particles), MRCLAM Dataset 6 with known ids at 1,000
+//! particles as a multiple of real time, and Victoria Park (unknown association, 100
+//! particles); on all the rayon threads (`RAYON_NUM_THREADS` sets them).
 
 use fleetslam_core::config::{DeferSampling, FastSlamVersion};
 use fleetslam_core::filter::FastSlam;
@@ -36,7 +42,7 @@ use std::time::Instant;
 
 fn usage() -> ! {
     eprintln!(
-        "usage: filter_seeds mrclam|control-noise|sims|victoria [--no-ids] [--seeds A-B|a,b,c] \
+        "usage: filter_seeds mrclam|control-noise|sims|victoria|speed [--no-ids] [--seeds A-B|a,b,c] \
          [--particles N] [--version 1|2] [--duration S] [--dataset DIR]"
     );
     std::process::exit(2)
@@ -267,7 +273,74 @@ fn main() {
                 );
             }
         }
+        "speed" => {
+            let seed = seeds.and_then(|s| s.first().copied()).unwrap_or(1);
+            println!(
+                "filter speed on {} threads, seed {seed}",
+                rayon::current_num_threads()
+            );
+            let span = |log: &fleetslam_core::log::Log| {
+                let ts = log.records.iter().map(|r| r.t);
+                ts.clone().fold(f64::NEG_INFINITY, f64::max) - ts.fold(f64::INFINITY, f64::min)
+            };
+            // Wall time of a run per particle and record, and per particle and landmark
+            // observation (as metrics.json reports them).
+            let timed = |log: &fleetslam_core::log::Log, particles: usize| {
+                let mut cfg = experiment_config(&log.header);
+                cfg.particles = particles;
+                cfg.seed = seed;
+                let mut slam = FastSlam::new(cfg).expect("valid configuration");
+                let out =
+                    run_log(&mut slam, log, TrajectoryEstimate::Mean, |_, _| {}).expect("run");
+                let obs: usize = log.records.iter().map(|r| r.landmarks.len()).sum();
+                let per = |n: usize| out.metrics.wall_time_s * 1e9 / (particles * n) as f64;
+                (out.metrics.wall_time_s, per(log.records.len()), per(obs))
+            };
+            let sim = simulate(&speed_scenario(seed)).expect("valid simulation");
+            let obs: usize = sim.log.records.iter().map(|r| r.landmarks.len()).sum();
+            for particles in [100, 1000] {
+                let (wall, per_record, per_obs) = timed(&sim.log, particles);
+                println!(
+                    "simulated, known ids, {} records, {:.1} observations per record, \
+                     {particles} particles: {wall:.2} s, {per_record:.0} ns per particle and \
+                     record, {per_obs:.0} ns per particle and observation",
+                    sim.log.records.len(),
+                    obs as f64 / sim.log.records.len() as f64,
+                );
+            }
+            let imp = mrclam(&dataset, false, duration, odometry_delay);
+            let (wall, per_record, per_obs) = timed(&imp.log, 1000);
+            println!(
+                "MRCLAM Dataset 6, known ids, 1000 particles: {:.0} s of data in {wall:.2} s, \
+                 {:.0} times real time; {per_record:.0} ns per particle and record, \
+                 {per_obs:.0} per particle and observation",
+                span(&imp.log),
+                span(&imp.log) / wall,
+            );
+            let vp = import_victoria_park(
+                &PathBuf::from("../shared/datasets/victoria-park"),
+                &VictoriaOptions::default(),
+            )
+            .expect("import Victoria Park");
+            let (wall, _, per_obs) = timed(&vp.log, 100);
+            println!(
+                "Victoria Park, unknown association, 100 particles: {:.0} s of data in \
+                 {wall:.2} s, {per_obs:.0} ns per particle and observation",
+                span(&vp.log)
+            );
+        }
         _ => usage(),
+    }
+}
+
+/// The simulated log of `speed`: 3 robots among 60 landmarks with the default sensor (6 m,
+/// 180°), so that records hold 6 or more observations on average (known ids), 120 s.
+fn speed_scenario(seed: u64) -> SimConfig {
+    SimConfig {
+        seed,
+        duration: 120.0,
+        landmarks: 60,
+        ..SimConfig::default()
     }
 }
 

@@ -1628,7 +1628,8 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
                 s,
                 Landmark {
                     gaussian: out.posterior,
-                    existence: (old.existence + a.existence_hit).min(a.existence_max),
+                    existence: (p.map.existence(s).unwrap_or(old.existence) + a.existence_hit)
+                        .min(a.existence_max),
                     hits: old.hits + 1,
                     ..old
                 },
@@ -1676,16 +1677,15 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
                 // The landmark of lowest slot within the separation.
                 let mut other: Option<(usize, Landmark)> = None;
                 let (lx, ly) = (l.gaussian.mean[0], l.gaussian.mean[1]);
-                p.map
-                    .for_each_near(lx, ly, covering_radius(sep2), |t, m| {
-                        if t != s
-                            && (m.gaussian.mean[0] - lx).powi(2) + (m.gaussian.mean[1] - ly).powi(2)
-                                < sep2
-                            && other.is_none_or(|(o, _)| t < o)
-                        {
-                            other = Some((t, *m));
-                        }
-                    });
+                p.map.for_each_near(lx, ly, covering_radius(sep2), |t, m| {
+                    if t != s
+                        && (m.gaussian.mean[0] - lx).powi(2) + (m.gaussian.mean[1] - ly).powi(2)
+                            < sep2
+                        && other.is_none_or(|(o, _)| t < o)
+                    {
+                        other = Some((t, *m));
+                    }
+                });
                 let Some((t, m)) = other else {
                     continue;
                 };
@@ -1695,11 +1695,15 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
                     } else {
                         (s, l, m)
                     };
+                let existence =
+                    |slot: usize, l: &Landmark| p.map.existence(slot).unwrap_or(l.existence);
+                let existence =
+                    existence(keep, &kept).max(existence(if keep == s { t } else { s }, &gone));
                 p.map.set(
                     keep,
                     Landmark {
                         hits: kept.hits + gone.hits,
-                        existence: kept.existence.max(gone.existence),
+                        existence,
                         ..kept
                     },
                 );
@@ -1714,7 +1718,7 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
         for (i, p) in chunk.iter_mut().enumerate() {
             let pose = p.poses[r];
             let seen = &observed[i];
-            let mut missed: Vec<(usize, Landmark)> = Vec::new();
+            let mut missed: Vec<usize> = Vec::new();
             let reach = covering_radius(range.max_range * range.max_range);
             p.map.for_each_near(pose.x, pose.y, reach, |s, l| {
                 if seen.contains(&s) {
@@ -1730,16 +1734,20 @@ fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> Filt
                 if d < range.max_range
                     && wrap_angle(dy.atan2(dx) - pose.theta).abs() < 0.5 * range.fov
                 {
-                    missed.push((s, *l));
+                    missed.push(s);
                 }
             });
-            for (s, l) in missed {
-                let e = l.existence - a.existence_miss;
+            for s in missed {
+                let Some(e) = p.map.existence(s) else {
+                    continue;
+                };
+                let e = e - a.existence_miss;
                 if e < 0.0 {
                     p.map.remove(s);
                     stats.landmarks_removed += 1;
                 } else {
-                    p.map.set(s, Landmark { existence: e, ..l });
+                    // Held apart from the landmark: no leaf copy per landmark in view.
+                    p.map.set_existence(s, e);
                 }
             }
         }

@@ -17,7 +17,8 @@
 //! slot, so a slot number names one landmark for the life of the map.
 //!
 //! The map also keeps a spatial index, persistent and shared like the trie: the slots of its
-//! landmarks by ground-plane cell of [`INDEX_CELL`] metres (a hash trie from `rpds`), and a
+//! landmarks by ground-plane cell of [`INDEX_CELL`] metres (a hash trie from `rpds`, keyed by
+//! `foldhash`'s fixed-seed hash: two integers need no SipHash), and a
 //! list of the landmarks too uncertain to be placed in one cell ([`INDEX_WIDE_TRACE`]).
 //! [`LandmarkMap::for_each_near`] visits the landmarks that may lie within a distance of a
 //! point through it, so that association, merging and the existence pass cost O(k + log M)
@@ -41,6 +42,10 @@ pub const INDEX_CELL: f64 = 4.0;
 /// association radius grows with a landmark's own variance: a landmark in a cell is then
 /// found by a query of the radius its caller computes with this bound.
 pub const INDEX_WIDE_TRACE: f64 = 1.0;
+/// Existence values the map holds apart from their landmarks at most ([`LandmarkMap::
+/// set_existence`]); beyond that they are written into the trie. Bounds what a particle copy
+/// costs beyond its pointers.
+pub const PENDING_EXISTENCE: usize = 64;
 /// A query that would visit more cells than the map has landmarks divided by this visits
 /// every landmark instead (a cell lookup costs about as much as this many distance checks).
 const CELL_LOOKUP_COST: f64 = 4.0;
@@ -59,7 +64,8 @@ pub struct Landmark {
     /// The id given by observations, when association is by id.
     pub id: Option<u32>,
     /// Existence log-odds: raised when the landmark is observed, lowered when it was in view
-    /// but not observed; the landmark is removed when it falls below zero.
+    /// but not observed; the landmark is removed when it falls below zero. In a map, the
+    /// current value is [`LandmarkMap::existence`]: this field may lag behind it.
     pub existence: f64,
     /// How many observations updated it.
     pub hits: u32,
@@ -115,12 +121,17 @@ pub struct LandmarkMap {
     slots: usize,
     live: usize,
     /// The spatial index: slots by [`Place`].
-    index: HashTrieMapSync<Place, Arc<[u32]>>,
+    index: HashTrieMapSync<Place, Arc<[u32]>, foldhash::fast::FixedState>,
+    /// Existence values newer than their landmarks' `existence` field, by slot (sorted):
+    /// the existence pass lowers the value of every landmark in view on every record, and
+    /// writing each into the trie would copy its leaf (after a resample, its whole path).
+    pending: Arc<Vec<(u32, f64)>>,
 }
 
 impl PartialEq for LandmarkMap {
+    /// Equal contents, with current existence values (however they are held).
     fn eq(&self, other: &Self) -> bool {
-        self.slots == other.slots && self.live == other.live && self.iter().eq(other.iter())
+        self.slots == other.slots && self.live == other.live && self.current().eq(other.current())
     }
 }
 
@@ -153,6 +164,8 @@ impl LandmarkMap {
         (slot >> (LEAF_BITS + BRANCH_BITS * level)) & (BRANCH - 1)
     }
 
+    /// The landmark in `slot` (its `existence` field may lag: see
+    /// [`LandmarkMap::existence`]).
     #[inline]
     pub fn get(&self, slot: usize) -> Option<&Landmark> {
         if slot >= self.slots {
@@ -244,6 +257,57 @@ impl LandmarkMap {
         }
     }
 
+    fn pending_at(&self, slot: usize) -> Result<usize, usize> {
+        self.pending.binary_search_by_key(&(slot as u32), |p| p.0)
+    }
+
+    /// Drops a pending existence value of `slot` (its landmark is being written whole).
+    fn forget_pending(&mut self, slot: usize) {
+        if let Ok(i) = self.pending_at(slot) {
+            Arc::make_mut(&mut self.pending).remove(i);
+        }
+    }
+
+    /// The current existence log-odds of the landmark in `slot`.
+    pub fn existence(&self, slot: usize) -> Option<f64> {
+        let l = self.get(slot)?;
+        Some(match self.pending_at(slot) {
+            Ok(i) => self.pending[i].1,
+            Err(_) => l.existence,
+        })
+    }
+
+    /// Sets the existence log-odds of the landmark in `slot` (if present) without writing the
+    /// landmark: the value is held apart (up to [`PENDING_EXISTENCE`] of them, then all are
+    /// written into the trie) until the landmark is next written whole.
+    pub fn set_existence(&mut self, slot: usize, e: f64) {
+        if self.get(slot).is_none() {
+            return;
+        }
+        let at = self.pending_at(slot);
+        let v = Arc::make_mut(&mut self.pending);
+        match at {
+            Ok(i) => v[i].1 = e,
+            Err(i) => v.insert(i, (slot as u32, e)),
+        }
+        if v.len() > PENDING_EXISTENCE {
+            for (s, e) in std::mem::take(v) {
+                let cell = self.cell_mut(s as usize);
+                if let Some(l) = cell {
+                    l.existence = e;
+                }
+            }
+        }
+    }
+
+    /// Present landmarks with their slots, in slot order, with their current existence.
+    pub fn current(&self) -> impl Iterator<Item = (usize, Landmark)> + '_ {
+        self.iter().map(|(s, l)| {
+            let existence = self.existence(s).unwrap_or(l.existence);
+            (s, Landmark { existence, ..*l })
+        })
+    }
+
     /// Adds a landmark in a new slot and returns the slot.
     pub fn push(&mut self, lm: Landmark) -> usize {
         let slot = self.slots;
@@ -269,6 +333,7 @@ impl LandmarkMap {
         if slot >= self.slots {
             return;
         }
+        self.forget_pending(slot);
         let old = self.cell_mut(slot).replace(lm);
         if old.is_none() {
             self.live += 1;
@@ -279,6 +344,7 @@ impl LandmarkMap {
     /// Removes the landmark in `slot`, leaving the slot empty.
     pub fn remove(&mut self, slot: usize) {
         if self.get(slot).is_some() {
+            self.forget_pending(slot);
             let old = self.cell_mut(slot).take();
             self.live -= 1;
             self.reindex(slot, old.as_ref(), None);
@@ -402,7 +468,12 @@ impl<'a> Iterator for Iter<'a> {
 
 impl Serialize for LandmarkMap {
     fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        s.collect_seq((0..self.slots).map(|i| self.get(i)))
+        s.collect_seq((0..self.slots).map(|i| {
+            self.get(i).map(|l| Landmark {
+                existence: self.existence(i).unwrap_or(l.existence),
+                ..*l
+            })
+        }))
     }
 }
 
@@ -481,7 +552,11 @@ mod tests {
     #[test]
     fn queries_find_every_landmark_within_the_radius() {
         use proptest::prelude::*;
-        let op = (0u8..3, 0usize..300, (-30.0f64..30.0, -30.0f64..30.0, 0.0f64..1.5));
+        let op = (
+            0u8..3,
+            0usize..300,
+            (-30.0f64..30.0, -30.0f64..30.0, 0.0f64..1.5),
+        );
         let query = (-35.0f64..35.0, -35.0f64..35.0, 0.0f64..12.0);
         proptest!(ProptestConfig::with_cases(64), |(
             ops in proptest::collection::vec(op, 1..400),
@@ -621,6 +696,51 @@ mod tests {
         a.set(501, lm(-6.0));
         assert_eq!(leaf_of(&a, 501), before);
         assert_eq!(b.get(500).unwrap().gaussian.mean[0], 500.0);
+    }
+
+    /// Existence values held apart read back, survive copies, serialisation and equality as
+    /// if written, and are written into the trie beyond the bound.
+    #[test]
+    fn existence_held_apart_reads_as_written() {
+        let mut a = LandmarkMap::new();
+        for i in 0..200 {
+            a.push(lm(i as f64));
+        }
+        let b = a.clone();
+        let mut c = a.clone();
+        a.set_existence(3, 0.25);
+        c.set(
+            3,
+            Landmark {
+                existence: 0.25,
+                ..lm(3.0)
+            },
+        );
+        assert_eq!(a.existence(3), Some(0.25));
+        assert_eq!(b.existence(3), Some(1.0));
+        assert_eq!(a, c);
+        assert_ne!(a, b);
+        let back: LandmarkMap = serde_json::from_str(&serde_json::to_string(&a).unwrap()).unwrap();
+        assert_eq!(back, a);
+        assert_eq!(back.get(3).unwrap().existence, 0.25);
+        // A whole write replaces a held value; a removal drops it.
+        a.set(3, lm(3.0));
+        assert_eq!(a.existence(3), Some(1.0));
+        a.set_existence(4, 0.5);
+        a.remove(4);
+        assert_eq!(a.existence(4), None);
+        a.set_existence(4, 0.5);
+        assert_eq!(a.existence(4), None, "no value for an empty slot");
+        // Past the bound, the held values go into the trie.
+        for s in 0..=PENDING_EXISTENCE {
+            a.set_existence(s + 10, 0.125);
+        }
+        assert!(a.pending.is_empty());
+        for s in 0..=PENDING_EXISTENCE {
+            assert_eq!(a.get(s + 10).unwrap().existence, 0.125);
+            assert_eq!(a.existence(s + 10), Some(0.125));
+        }
+        assert_eq!(b.get(10).unwrap().existence, 1.0, "copies unchanged");
     }
 
     #[test]

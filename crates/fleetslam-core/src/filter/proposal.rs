@@ -1,0 +1,246 @@
+//! How a particle's pose moves: FastSLAM 2.0's proposal (the motion prediction refined by
+//! the matched observations), robot sightings as Kalman updates of a deferred pose
+//! Gaussian, FastSLAM 1.0's motion sample, and the odometry scales' draws and walk.
+
+use super::gauss::{cholesky_psd, innovation, inv_logdet, normal3, predict, sym3};
+use super::{Action, Particle, StepCtx};
+use crate::config::{LN_2PI, OdometryCalibration};
+use crate::motion::scale_increment;
+use crate::pose::{Pose2, wrap_angle};
+use crate::rng::{LANE_CALIBRATION, stream};
+use crate::sensor::range_bearing_predict;
+use crate::stats::log_add_exp;
+use nalgebra::{Matrix3, Vector3};
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+
+/// Log-likelihood of a sighting `z` (range, bearing) of a robot at `target` (position
+/// covariance `pt`, the 2x2 block of its pose covariance) from `pose` (pose covariance
+/// `pr`), with sighting noise `qs`, and the Kalman gain and innovation that update `pose`'s
+/// Gaussian with it: the marginal over both robots' pose Gaussians (a point pose has a zero
+/// covariance). `None` for a degenerate geometry.
+#[allow(clippy::type_complexity)]
+pub(super) fn sighting_marginal(
+    pose: &Pose2,
+    pr: &Matrix3<f64>,
+    target: &Pose2,
+    pt: &Matrix3<f64>,
+    qs: &nalgebra::Matrix2<f64>,
+    z: &[f64; 2],
+) -> Option<(
+    f64,
+    nalgebra::Matrix2x3<f64>,
+    nalgebra::Matrix2<f64>,
+    nalgebra::Vector2<f64>,
+)> {
+    let (zhat, hm, hx) = range_bearing_predict(pose, target.x, target.y)?;
+    let ptp = pt.fixed_view::<2, 2>(0, 0).into_owned();
+    let s = qs + hm * ptp * hm.transpose() + hx * pr * hx.transpose();
+    let det = s.determinant();
+    if !(det > 0.0 && det.is_finite()) {
+        return None;
+    }
+    let s_inv = s.try_inverse()?;
+    let nu = nalgebra::Vector2::new(z[0] - zhat[0], wrap_angle(z[1] - zhat[1]));
+    let ll = -0.5 * nu.dot(&(s_inv * nu)) - LN_2PI - 0.5 * det.ln();
+    ll.is_finite().then_some((ll, hx, s_inv, nu))
+}
+
+/// FastSLAM 2.0's proposal for one particle: the motion prediction `N(mean0, pc)` refined by
+/// each observation the association matched, and with `sightings_in_proposal` each sighting
+/// of another robot (a Kalman update of the pose per observation), then sampled. Returns the sampled pose and the particle's log-weight increment, the sum of
+/// each observation's mixture likelihood (its proposal marginal for the matched ones), or
+/// `None` when the proposal is degenerate (non-finite, or a covariance without a Cholesky
+/// factor): the caller then falls back to 1.0's proposal for this particle. Matched
+/// observations whose prediction fails, or beyond the `outlier` bound, become `Outlier`.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn propose(
+    ctx: &StepCtx<'_>,
+    q: &Matrix3<f64>,
+    part: &Particle,
+    mean0: &Pose2,
+    pc0: &Matrix3<f64>,
+    acts: &mut [Action],
+    best_ll: &[f64],
+    rng: &mut ChaCha8Rng,
+) -> Option<(Pose2, f64)> {
+    let kind = ctx.cfg.landmark_kind;
+    let outlier = ctx.cfg.association_params.outlier;
+    let mut mu = Vector3::new(mean0.x, mean0.y, mean0.theta);
+    let mut pc = *pc0;
+    let mut dw = 0.0;
+    for (j, o) in ctx.obs.iter().enumerate() {
+        let slot = match acts[j] {
+            Action::Update(s) => s,
+            Action::New(Some(_)) | Action::Outlier => {
+                dw += ctx.clutter;
+                continue;
+            }
+            Action::New(None) | Action::Ignore => {
+                dw += log_add_exp(best_ll[j], ctx.clutter);
+                continue;
+            }
+        };
+        let pose = Pose2::new(mu[0], mu[1], mu[2]);
+        let Some(lm) = part.map.get(slot) else {
+            acts[j] = Action::Outlier;
+            dw += ctx.clutter;
+            continue;
+        };
+        let Some((zhat, hm, hx)) = predict(kind, &pose, &lm.gaussian.mean) else {
+            acts[j] = Action::Outlier;
+            dw += ctx.clutter;
+            continue;
+        };
+        let qj = hm * lm.gaussian.cov3() * hm.transpose() + q;
+        let pht = pc * hx.transpose();
+        let s = hx * pht + qj;
+        let Some((s_inv, logdet)) = inv_logdet(kind, &s) else {
+            acts[j] = Action::Outlier;
+            dw += ctx.clutter;
+            continue;
+        };
+        let nu = innovation(kind, &o.z, &zhat);
+        let m2 = nu.dot(&(s_inv * nu));
+        let ll = -0.5 * m2 - 0.5 * (kind.dim() as f64 * LN_2PI + logdet);
+        dw += log_add_exp(
+            if ll.is_finite() {
+                ll
+            } else {
+                f64::NEG_INFINITY
+            },
+            ctx.clutter,
+        );
+        if outlier.is_some_and(|b| m2.is_nan() || m2 > b) {
+            acts[j] = Action::Outlier;
+            continue;
+        }
+        let k = pht * s_inv;
+        mu += k * nu;
+        mu[2] = wrap_angle(mu[2]);
+        let ikh = Matrix3::identity() - k * hx;
+        pc = ikh * pc * ikh.transpose() + k * qj * k.transpose();
+        pc = 0.5 * (pc + pc.transpose());
+    }
+    // With `sightings_in_proposal`, sightings of other robots refine the proposal too: the
+    // other robot's position is a landmark whose covariance is its pose covariance's
+    // position block.
+    let qs = ctx.cfg.sighting_noise.q2();
+    let sightings = if ctx.cfg.sightings_in_proposal {
+        ctx.sightings
+    } else {
+        &[]
+    };
+    for &(other, z) in sightings {
+        let pose = Pose2::new(mu[0], mu[1], mu[2]);
+        let Some((ll, next, next_pc)) = sighting_step(part, other, &z, &qs, &pose, &pc) else {
+            dw += ctx.sighting_clutter;
+            continue;
+        };
+        dw += log_add_exp(ll, ctx.sighting_clutter);
+        mu = Vector3::new(next.x, next.y, next.theta);
+        pc = next_pc;
+    }
+    if !(mu.iter().all(|v| v.is_finite()) && pc.iter().all(|v| v.is_finite())) {
+        return None;
+    }
+    // A zero covariance (no motion noise) is a point proposal, not a failure.
+    let e = if pc.iter().all(|v| *v == 0.0) {
+        Vector3::zeros()
+    } else {
+        cholesky_psd(&pc)? * normal3(rng)
+    };
+    Some((
+        Pose2::new(mu[0] + e[0], mu[1] + e[1], wrap_angle(mu[2] + e[2])),
+        dw,
+    ))
+}
+
+/// The deferred path of FastSLAM 2.0 for a record without landmark observations: the
+/// robot's predicted pose Gaussian `N(mean0, pc0)` updated by each of its sightings of other
+/// robots (an EKF update, marginal over the other robot's pose Gaussian), and the
+/// log-weight increment, each sighting's mixture likelihood.
+pub(super) fn sighting_update(
+    ctx: &StepCtx<'_>,
+    qs: &nalgebra::Matrix2<f64>,
+    p: &Particle,
+    mean0: Pose2,
+    pc0: Matrix3<f64>,
+) -> (Pose2, Matrix3<f64>, f64) {
+    let (mut mu, mut pc, mut dw) = (mean0, pc0, 0.0);
+    for &(other, z) in ctx.sightings {
+        let Some((ll, next, next_pc)) = sighting_step(p, other, &z, qs, &mu, &pc) else {
+            dw += ctx.sighting_clutter;
+            continue;
+        };
+        dw += log_add_exp(ll, ctx.sighting_clutter);
+        if next.is_finite() && next_pc.iter().all(|v| v.is_finite()) {
+            mu = next;
+            pc = next_pc;
+        }
+    }
+    (mu, pc, dw)
+}
+
+/// One sighting `z` of robot `other` (in particle `p`) as an EKF update of the pose Gaussian
+/// `N(mu, pc)` of the robot that saw it: the sighting's log-likelihood, marginal over both
+/// Gaussians ([`sighting_marginal`]), and the updated mean and (symmetrised) covariance.
+/// `None` for a degenerate geometry.
+pub(super) fn sighting_step(
+    p: &Particle,
+    other: usize,
+    z: &[f64; 2],
+    qs: &nalgebra::Matrix2<f64>,
+    mu: &Pose2,
+    pc: &Matrix3<f64>,
+) -> Option<(f64, Pose2, Matrix3<f64>)> {
+    let pt = sym3(&p.pose_covs[other]);
+    let (ll, hx, s_inv, nu) = sighting_marginal(mu, pc, &p.poses[other], &pt, qs, z)?;
+    let k = pc * hx.transpose() * s_inv;
+    let d = k * nu;
+    let next = Pose2::new(mu.x + d[0], mu.y + d[1], wrap_angle(mu.theta + d[2]));
+    let next_pc = (Matrix3::identity() - k * hx) * pc;
+    Some((ll, next, 0.5 * (next_pc + next_pc.transpose())))
+}
+
+/// A sample of the motion model (FastSLAM 1.0's proposal).
+pub(super) fn sample_motion(
+    ctx: &StepCtx<'_>,
+    prev: &Pose2,
+    inc: &Pose2,
+    rng: &mut ChaCha8Rng,
+) -> Pose2 {
+    let e = Pose2::new(
+        ctx.std[0] * rng.sample::<f64, _>(StandardNormal),
+        ctx.std[1] * rng.sample::<f64, _>(StandardNormal),
+        ctx.std[2] * rng.sample::<f64, _>(StandardNormal),
+    );
+    let noisy = Pose2::new(inc.x + e.x, inc.y + e.y, inc.theta + e.theta);
+    prev.compose(&noisy)
+}
+
+/// A new robot's odometry scales in particle `i`: `[1, 1]` without calibration (nothing
+/// drawn), else `1 + std · N(0, 1)` each, from the particle's calibration stream.
+pub(super) fn draw_scales(cal: &OdometryCalibration, seed: u64, step: u64, i: usize) -> [f64; 2] {
+    if !cal.enabled() {
+        return [1.0; 2];
+    }
+    let mut rng = stream(seed, step, LANE_CALIBRATION + i as u64);
+    let mut draw = |std: f64| 1.0 + std * rng.sample::<f64, _>(StandardNormal);
+    [draw(cal.distance_std), draw(cal.rotation_std)]
+}
+
+/// The record's increment as this particle's odometry scales of the robot see it, after
+/// their random walk over the motion's duration (which draws from `rng` only when
+/// calibration walks).
+pub(super) fn scaled_increment(ctx: &StepCtx<'_>, p: &mut Particle, rng: &mut ChaCha8Rng) -> Pose2 {
+    let cal = &ctx.cfg.odometry_calibration;
+    let s = &mut p.odometry_scales[ctx.robot];
+    if cal.walks() && ctx.dt > 0.0 {
+        let sq = ctx.dt.sqrt();
+        s[0] += cal.distance_walk_per_sqrt_s * sq * rng.sample::<f64, _>(StandardNormal);
+        s[1] += cal.rotation_walk_per_sqrt_s * sq * rng.sample::<f64, _>(StandardNormal);
+    }
+    scale_increment(&ctx.inc, *s)
+}

@@ -1,0 +1,348 @@
+//! One work item of a step: a contiguous run of particles taken through the record's
+//! phases (poses and association, landmark updates, sightings, merging, existence).
+
+use super::association::{associate_record, covering_radius};
+use super::gauss::{compose_jacobian, q_matrix, sample_gaussian, sym3, upper3};
+use super::proposal::{
+    propose, sample_motion, scaled_increment, sighting_marginal, sighting_update,
+};
+use super::{Action, FilterStats, Particle, StepCtx};
+use crate::config::{Association, FastSlamVersion};
+use crate::map::Landmark;
+use crate::motion::covariance_in_world_sc;
+use crate::pose::wrap_angle;
+use crate::rng::stream;
+use crate::stats::log_add_exp;
+use crate::updater::{UpdateInput, UpdateOutput};
+use nalgebra::Matrix3;
+use std::time::Instant;
+
+/// One work item: `chunk` holds particles `base..base + chunk.len()`.
+pub(super) fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> FilterStats {
+    let cfg = ctx.cfg;
+    let r = ctx.robot;
+    let n = chunk.len();
+    let nobs = ctx.obs.len();
+    let q = q_matrix(cfg);
+    let outlier = cfg.association_params.outlier;
+    let mut stats = FilterStats::default();
+    if ctx.known_len > 0 {
+        for p in chunk.iter_mut() {
+            p.map.ensure_slots(ctx.known_len);
+        }
+    }
+    // actions[i * nobs + j]: what particle i does with observation j; best_ll the Gaussian
+    // log-likelihood of the landmark explaining it best.
+    let mut actions = vec![Action::Ignore; n * nobs];
+    let mut best_ll = vec![f64::NEG_INFINITY; n * nobs];
+    // Whether particle i weighs its observations from the updater's likelihoods (1.0, or a
+    // 2.0 particle whose proposal was degenerate) rather than from its proposal.
+    let mut weigh_in_update = vec![true; n];
+    let v2 = cfg.version == FastSlamVersion::V2;
+    // 2.0 with deferred sampling: a record without landmark observations moves each
+    // particle's pose Gaussian of this robot (its sightings update it) instead of sampling.
+    let defer = v2 && ctx.defer && nobs == 0;
+    let qs = cfg.sighting_noise.q2();
+    let calibrate = cfg.odometry_calibration.enabled();
+
+    // 1. Poses, association, and in 2.0 the weights from the proposal.
+    for (i, p) in chunk.iter_mut().enumerate() {
+        let prev = p.poses[r];
+        let prev_cov = p.pose_covs[r];
+        // The particle's stream of this step, set up here: a generator is a few hundred
+        // bytes, too many to gather for a whole work item.
+        let rng = &mut stream(cfg.seed, ctx.step, (base + i) as u64);
+        let acts = &mut actions[i * nobs..(i + 1) * nobs];
+        let bll = &mut best_ll[i * nobs..(i + 1) * nobs];
+        let point = prev_cov.iter().all(|v| *v == 0.0);
+        let inc = if calibrate {
+            scaled_increment(ctx, p, rng)
+        } else {
+            ctx.inc
+        };
+        let sc = prev.theta.sin_cos();
+        let mean0 = prev.compose_sc(&inc, sc);
+        let mut pc0 = covariance_in_world_sc(sc, &ctx.var);
+        if !point {
+            let f = compose_jacobian(sc, &inc);
+            pc0 += f * sym3(&prev_cov) * f.transpose();
+        }
+        if defer {
+            let (pose, pc, dw) = sighting_update(ctx, &qs, p, mean0, pc0);
+            p.poses[r] = pose;
+            p.pose_covs[r] = upper3(&pc);
+            p.log_w += dw;
+            continue;
+        }
+        p.pose_covs[r] = [0.0; 6];
+        if v2 && nobs > 0 {
+            associate_record(ctx, &q, &p.map, &mean0, &pc0, acts, bll);
+            if let Some((pose, dw)) = propose(ctx, &q, p, &mean0, &pc0, acts, bll, rng) {
+                p.poses[r] = pose;
+                p.log_w += dw;
+                weigh_in_update[i] = false;
+                continue;
+            }
+            stats.proposal_fallbacks += 1;
+        }
+        let pose = if point {
+            sample_motion(ctx, &prev, &inc, rng)
+        } else {
+            sample_gaussian(&mean0, &pc0, rng)
+        };
+        p.poses[r] = pose;
+        if nobs > 0 {
+            associate_record(ctx, &q, &p.map, &pose, &Matrix3::zeros(), acts, bll);
+        }
+    }
+
+    // 2. Landmarks, one updater batch per observation.
+    let mut inputs: Vec<UpdateInput> = Vec::with_capacity(n);
+    let mut outputs: Vec<UpdateOutput> = Vec::with_capacity(n);
+    let mut who: Vec<(usize, usize, bool)> = Vec::with_capacity(n);
+    let mut observed: Vec<Vec<usize>> = vec![
+        Vec::new();
+        if cfg.association == Association::Unknown {
+            n
+        } else {
+            0
+        }
+    ];
+    let a = &cfg.association_params;
+    for (j, o) in ctx.obs.iter().enumerate() {
+        inputs.clear();
+        who.clear();
+        for (i, p) in chunk.iter_mut().enumerate() {
+            let pose = p.poses[r];
+            let mut action = actions[i * nobs + j];
+            let v1 = weigh_in_update[i];
+            let mut weigh = v1;
+            // A known id seen twice in one record: the second sighting updates the landmark
+            // the first one created.
+            if let Action::New(Some(s)) = action
+                && p.map.get(s).is_some()
+            {
+                action = Action::Update(s);
+                if !v1 {
+                    // The proposal counted it as clutter; its likelihood comes from the update.
+                    p.log_w -= ctx.clutter;
+                    weigh = true;
+                }
+            }
+            match action {
+                Action::Update(s) => {
+                    if let Some(lm) = p.map.get(s) {
+                        inputs.push(UpdateInput {
+                            prior: lm.gaussian,
+                            pose,
+                            z: o.z,
+                        });
+                        who.push((i, s, weigh));
+                    }
+                }
+                Action::New(slot) => {
+                    let g = ctx.updater.initialize(&pose, &o.z);
+                    let lm = Landmark {
+                        gaussian: g,
+                        id: o.id,
+                        existence: (a.existence_prior + a.existence_hit).min(a.existence_max),
+                        hits: 1,
+                    };
+                    if v1 {
+                        p.log_w += log_add_exp(best_ll[i * nobs + j], ctx.clutter);
+                    }
+                    let s = match slot {
+                        Some(s) => {
+                            p.map.set(s, lm);
+                            s
+                        }
+                        None => p.map.push(lm),
+                    };
+                    if !observed.is_empty() {
+                        observed[i].push(s);
+                    }
+                    stats.landmarks_created += 1;
+                }
+                Action::Ignore => {
+                    if v1 {
+                        p.log_w += log_add_exp(best_ll[i * nobs + j], ctx.clutter);
+                    }
+                    stats.ignored_observations += 1;
+                }
+                Action::Outlier => {
+                    if v1 {
+                        p.log_w += ctx.clutter;
+                    }
+                    stats.outliers += 1;
+                }
+            }
+        }
+        if inputs.is_empty() {
+            continue;
+        }
+        outputs.clear();
+        outputs.resize(inputs.len(), UpdateOutput::default());
+        let t0 = Instant::now();
+        for (i, o) in inputs
+            .chunks(cfg.batch_size)
+            .zip(outputs.chunks_mut(cfg.batch_size))
+        {
+            ctx.updater.update_batch(i, o);
+        }
+        stats.update_nanos += t0.elapsed().as_nanos() as u64;
+        stats.landmark_updates += inputs.len() as u64;
+        for (&(i, s, weigh), out) in who.iter().zip(&outputs) {
+            let p = &mut chunk[i];
+            if weigh {
+                let ll = if out.log_likelihood.is_finite() {
+                    out.log_likelihood
+                } else {
+                    f64::NEG_INFINITY
+                };
+                p.log_w += log_add_exp(ll, ctx.clutter);
+            }
+            if outlier.is_some_and(|b| out.mahalanobis2.is_nan() || out.mahalanobis2 > b) {
+                stats.outliers += 1;
+                continue;
+            }
+            if !out.posterior.is_finite() {
+                continue;
+            }
+            let Some(old) = p.map.get(s).copied() else {
+                continue;
+            };
+            p.map.set(
+                s,
+                Landmark {
+                    gaussian: out.posterior,
+                    existence: (p.map.existence(s).unwrap_or(old.existence) + a.existence_hit)
+                        .min(a.existence_max),
+                    hits: old.hits + 1,
+                    ..old
+                },
+            );
+            if !observed.is_empty() {
+                observed[i].push(s);
+            }
+        }
+    }
+
+    // 3. Sightings of other robots: the same mixture, with the sighting noise, marginal
+    // over the other robot's pose Gaussian (the deferred path and 2.0's proposal weighed
+    // them already).
+    if !ctx.sightings.is_empty() && !defer {
+        for (i, p) in chunk.iter_mut().enumerate() {
+            if !weigh_in_update[i] && cfg.sightings_in_proposal {
+                continue;
+            }
+            for &(other, z) in ctx.sightings {
+                let pt = sym3(&p.pose_covs[other]);
+                let ll = sighting_marginal(
+                    &p.poses[r],
+                    &Matrix3::zeros(),
+                    &p.poses[other],
+                    &pt,
+                    &qs,
+                    &z,
+                )
+                .map_or(f64::NEG_INFINITY, |m| m.0);
+                p.log_w += log_add_exp(ll, ctx.sighting_clutter);
+            }
+        }
+    }
+
+    // 4. Landmarks that this record brought closer than the minimum separation to another
+    // landmark of their map are one landmark (unknown association): the one observed more
+    // often stays and takes the other's observation count and existence.
+    let sep2 = a.min_separation * a.min_separation;
+    if !observed.is_empty() && sep2 > 0.0 {
+        for (i, p) in chunk.iter_mut().enumerate() {
+            for &s in &observed[i] {
+                let Some(l) = p.map.get(s).copied() else {
+                    continue;
+                };
+                // The landmark of lowest slot within the separation.
+                let mut other: Option<(usize, Landmark)> = None;
+                let (lx, ly) = (l.gaussian.mean[0], l.gaussian.mean[1]);
+                p.map.for_each_near(lx, ly, covering_radius(sep2), |t, m| {
+                    if t != s
+                        && (m.gaussian.mean[0] - lx).powi(2) + (m.gaussian.mean[1] - ly).powi(2)
+                            < sep2
+                        && other.is_none_or(|(o, _)| t < o)
+                    {
+                        other = Some((t, *m));
+                    }
+                });
+                let Some((t, m)) = other else {
+                    continue;
+                };
+                let (keep, kept, gone) =
+                    if (m.hits, std::cmp::Reverse(t)) > (l.hits, std::cmp::Reverse(s)) {
+                        (t, m, l)
+                    } else {
+                        (s, l, m)
+                    };
+                let existence =
+                    |slot: usize, l: &Landmark| p.map.existence(slot).unwrap_or(l.existence);
+                let existence =
+                    existence(keep, &kept).max(existence(if keep == s { t } else { s }, &gone));
+                p.map.set(
+                    keep,
+                    Landmark {
+                        hits: kept.hits + gone.hits,
+                        existence,
+                        ..kept
+                    },
+                );
+                p.map.remove(if keep == s { t } else { s });
+                stats.landmarks_merged += 1;
+            }
+        }
+    }
+
+    // 5. Existence of landmarks in view (unknown association).
+    if let (Some(range), false) = (&cfg.sensor_range, observed.is_empty() || nobs == 0) {
+        for (i, p) in chunk.iter_mut().enumerate() {
+            let pose = p.poses[r];
+            let seen = &observed[i];
+            let mut missed: Vec<usize> = Vec::new();
+            let reach = covering_radius(range.max_range * range.max_range);
+            p.map.for_each_near(pose.x, pose.y, reach, |s, l| {
+                if seen.contains(&s) {
+                    return;
+                }
+                let dx = l.gaussian.mean[0] - pose.x;
+                let dy = l.gaussian.mean[1] - pose.y;
+                // Beyond the covering radius it is out of range (the exact test is hypot).
+                if dx * dx + dy * dy > reach * reach {
+                    return;
+                }
+                let d = dx.hypot(dy);
+                if d < range.max_range
+                    && wrap_angle(dy.atan2(dx) - pose.theta).abs() < 0.5 * range.fov
+                {
+                    missed.push(s);
+                }
+            });
+            for s in missed {
+                let Some(e) = p.map.existence(s) else {
+                    continue;
+                };
+                let e = e - a.existence_miss;
+                if e < 0.0 {
+                    p.map.remove(s);
+                    stats.landmarks_removed += 1;
+                } else {
+                    // Held apart from the landmark: no leaf copy per landmark in view.
+                    p.map.set_existence(s, e);
+                }
+            }
+        }
+    }
+    for p in chunk.iter_mut() {
+        if !p.log_w.is_finite() {
+            p.log_w = f64::MIN;
+        }
+    }
+    stats
+}

@@ -17,35 +17,82 @@ use crate::updater::{UpdateInput, UpdateOutput};
 use nalgebra::Matrix3;
 use std::time::Instant;
 
+/// What phase 1 decided for each particle of a work item, for the phases after it.
+struct Decisions {
+    /// Observations of the record.
+    nobs: usize,
+    /// `actions[i * nobs + j]`: what particle i does with observation j.
+    actions: Vec<Action>,
+    /// The Gaussian log-likelihood of the landmark explaining observation j best in
+    /// particle i (same indexing), `-inf` if none.
+    best_ll: Vec<f64>,
+    /// Whether particle i weighs its observations from the updater's likelihoods (1.0, or a
+    /// 2.0 particle whose proposal was degenerate) rather than from its proposal.
+    weigh_in_update: Vec<bool>,
+}
+
+impl Decisions {
+    fn action(&self, i: usize, j: usize) -> Action {
+        self.actions[i * self.nobs + j]
+    }
+
+    fn best_ll(&self, i: usize, j: usize) -> f64 {
+        self.best_ll[i * self.nobs + j]
+    }
+}
+
 /// One work item: `chunk` holds particles `base..base + chunk.len()`.
 pub(super) fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> FilterStats {
     let cfg = ctx.cfg;
-    let r = ctx.robot;
-    let n = chunk.len();
-    let nobs = ctx.obs.len();
-    let q = q_matrix(cfg);
-    let outlier = cfg.association_params.outlier;
     let mut stats = FilterStats::default();
     if ctx.known_len > 0 {
         for p in chunk.iter_mut() {
             p.map.ensure_slots(ctx.known_len);
         }
     }
-    // actions[i * nobs + j]: what particle i does with observation j; best_ll the Gaussian
-    // log-likelihood of the landmark explaining it best.
-    let mut actions = vec![Action::Ignore; n * nobs];
-    let mut best_ll = vec![f64::NEG_INFINITY; n * nobs];
-    // Whether particle i weighs its observations from the updater's likelihoods (1.0, or a
-    // 2.0 particle whose proposal was degenerate) rather than from its proposal.
-    let mut weigh_in_update = vec![true; n];
-    let v2 = cfg.version == FastSlamVersion::V2;
     // 2.0 with deferred sampling: a record without landmark observations moves each
     // particle's pose Gaussian of this robot (its sightings update it) instead of sampling.
-    let defer = v2 && ctx.defer && nobs == 0;
+    let defer = cfg.version == FastSlamVersion::V2 && ctx.defer && ctx.obs.is_empty();
+    let decided = move_poses(ctx, base, chunk, defer, &mut stats);
+    let observed = update_landmarks(ctx, chunk, &decided, &mut stats);
+    if !ctx.sightings.is_empty() && !defer {
+        weigh_sightings(ctx, chunk, &decided);
+    }
+    if let Some(observed) = &observed {
+        merge_close_landmarks(ctx, chunk, observed, &mut stats);
+        if !ctx.obs.is_empty() {
+            lower_existence_in_view(ctx, chunk, observed, &mut stats);
+        }
+    }
+    for p in chunk.iter_mut() {
+        if !p.log_w.is_finite() {
+            p.log_w = f64::MIN;
+        }
+    }
+    stats
+}
+
+/// Phase 1: each particle's new pose of the robot (deferred Gaussian, 2.0's proposal, or
+/// 1.0's motion sample), the record's association, and in 2.0 the weights from the
+/// proposal.
+fn move_poses(
+    ctx: &StepCtx<'_>,
+    base: usize,
+    chunk: &mut [Particle],
+    defer: bool,
+    stats: &mut FilterStats,
+) -> Decisions {
+    let cfg = ctx.cfg;
+    let r = ctx.robot;
+    let n = chunk.len();
+    let nobs = ctx.obs.len();
+    let q = q_matrix(cfg);
+    let mut actions = vec![Action::Ignore; n * nobs];
+    let mut best_ll = vec![f64::NEG_INFINITY; n * nobs];
+    let mut weigh_in_update = vec![true; n];
+    let v2 = cfg.version == FastSlamVersion::V2;
     let qs = cfg.sighting_noise.q2();
     let calibrate = cfg.odometry_calibration.enabled();
-
-    // 1. Poses, association, and in 2.0 the weights from the proposal.
     for (i, p) in chunk.iter_mut().enumerate() {
         let prev = p.poses[r];
         let prev_cov = p.pose_covs[r];
@@ -96,26 +143,40 @@ pub(super) fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particl
         }
     }
 
-    // 2. Landmarks, one updater batch per observation.
+    Decisions {
+        nobs,
+        actions,
+        best_ll,
+        weigh_in_update,
+    }
+}
+
+/// Phase 2: the landmarks, one updater batch per observation (in calls of at most
+/// `batch_size`), and in 1.0 the weights from the updates. Returns, with unknown
+/// association, the slots each particle observed (updated or created).
+fn update_landmarks(
+    ctx: &StepCtx<'_>,
+    chunk: &mut [Particle],
+    d: &Decisions,
+    stats: &mut FilterStats,
+) -> Option<Vec<Vec<usize>>> {
+    let cfg = ctx.cfg;
+    let r = ctx.robot;
+    let n = chunk.len();
+    let outlier = cfg.association_params.outlier;
     let mut inputs: Vec<UpdateInput> = Vec::with_capacity(n);
     let mut outputs: Vec<UpdateOutput> = Vec::with_capacity(n);
     let mut who: Vec<(usize, usize, bool)> = Vec::with_capacity(n);
-    let mut observed: Vec<Vec<usize>> = vec![
-        Vec::new();
-        if cfg.association == Association::Unknown {
-            n
-        } else {
-            0
-        }
-    ];
+    let mut observed: Option<Vec<Vec<usize>>> =
+        (cfg.association == Association::Unknown).then(|| vec![Vec::new(); n]);
     let a = &cfg.association_params;
     for (j, o) in ctx.obs.iter().enumerate() {
         inputs.clear();
         who.clear();
         for (i, p) in chunk.iter_mut().enumerate() {
             let pose = p.poses[r];
-            let mut action = actions[i * nobs + j];
-            let v1 = weigh_in_update[i];
+            let mut action = d.action(i, j);
+            let v1 = d.weigh_in_update[i];
             let mut weigh = v1;
             // A known id seen twice in one record: the second sighting updates the landmark
             // the first one created.
@@ -149,7 +210,7 @@ pub(super) fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particl
                         hits: 1,
                     };
                     if v1 {
-                        p.log_w += log_add_exp(best_ll[i * nobs + j], ctx.clutter);
+                        p.log_w += log_add_exp(d.best_ll(i, j), ctx.clutter);
                     }
                     let s = match slot {
                         Some(s) => {
@@ -158,14 +219,14 @@ pub(super) fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particl
                         }
                         None => p.map.push(lm),
                     };
-                    if !observed.is_empty() {
-                        observed[i].push(s);
+                    if let Some(o) = &mut observed {
+                        o[i].push(s);
                     }
                     stats.landmarks_created += 1;
                 }
                 Action::Ignore => {
                     if v1 {
-                        p.log_w += log_add_exp(best_ll[i * nobs + j], ctx.clutter);
+                        p.log_w += log_add_exp(d.best_ll(i, j), ctx.clutter);
                     }
                     stats.ignored_observations += 1;
                 }
@@ -221,128 +282,146 @@ pub(super) fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particl
                     ..old
                 },
             );
-            if !observed.is_empty() {
-                observed[i].push(s);
+            if let Some(o) = &mut observed {
+                o[i].push(s);
             }
         }
     }
 
-    // 3. Sightings of other robots: the same mixture, with the sighting noise, marginal
-    // over the other robot's pose Gaussian (the deferred path and 2.0's proposal weighed
-    // them already).
-    if !ctx.sightings.is_empty() && !defer {
-        for (i, p) in chunk.iter_mut().enumerate() {
-            if !weigh_in_update[i] && cfg.sightings_in_proposal {
-                continue;
-            }
-            for &(other, z) in ctx.sightings {
-                let pt = sym3(&p.pose_covs[other]);
-                let ll = sighting_marginal(
-                    &p.poses[r],
-                    &Matrix3::zeros(),
-                    &p.poses[other],
-                    &pt,
-                    &qs,
-                    &z,
-                )
-                .map_or(f64::NEG_INFINITY, |m| m.0);
-                p.log_w += log_add_exp(ll, ctx.sighting_clutter);
-            }
+    observed
+}
+
+/// Phase 3: sightings of other robots weigh each particle by the same mixture, with the
+/// sighting noise, marginal over the other robot's pose Gaussian (the deferred path and
+/// 2.0's proposal with `sightings_in_proposal` weighed them already).
+fn weigh_sightings(ctx: &StepCtx<'_>, chunk: &mut [Particle], d: &Decisions) {
+    let cfg = ctx.cfg;
+    let r = ctx.robot;
+    let qs = cfg.sighting_noise.q2();
+    for (i, p) in chunk.iter_mut().enumerate() {
+        if !d.weigh_in_update[i] && cfg.sightings_in_proposal {
+            continue;
+        }
+        for &(other, z) in ctx.sightings {
+            let pt = sym3(&p.pose_covs[other]);
+            let ll = sighting_marginal(
+                &p.poses[r],
+                &Matrix3::zeros(),
+                &p.poses[other],
+                &pt,
+                &qs,
+                &z,
+            )
+            .map_or(f64::NEG_INFINITY, |m| m.0);
+            p.log_w += log_add_exp(ll, ctx.sighting_clutter);
         }
     }
+}
 
-    // 4. Landmarks that this record brought closer than the minimum separation to another
-    // landmark of their map are one landmark (unknown association): the one observed more
-    // often stays and takes the other's observation count and existence.
+/// Phase 4 (unknown association): landmarks that this record brought closer than the
+/// minimum separation to another landmark of their map are one landmark: the one observed
+/// more often stays and takes the other's observation count and existence.
+fn merge_close_landmarks(
+    ctx: &StepCtx<'_>,
+    chunk: &mut [Particle],
+    observed: &[Vec<usize>],
+    stats: &mut FilterStats,
+) {
+    let a = &ctx.cfg.association_params;
     let sep2 = a.min_separation * a.min_separation;
-    if !observed.is_empty() && sep2 > 0.0 {
-        for (i, p) in chunk.iter_mut().enumerate() {
-            for &s in &observed[i] {
-                let Some(l) = p.map.get(s).copied() else {
-                    continue;
-                };
-                // The landmark of lowest slot within the separation.
-                let mut other: Option<(usize, Landmark)> = None;
-                let (lx, ly) = (l.gaussian.mean[0], l.gaussian.mean[1]);
-                p.map.for_each_near(lx, ly, covering_radius(sep2), |t, m| {
-                    if t != s
-                        && (m.gaussian.mean[0] - lx).powi(2) + (m.gaussian.mean[1] - ly).powi(2)
-                            < sep2
-                        && other.is_none_or(|(o, _)| t < o)
-                    {
-                        other = Some((t, *m));
-                    }
-                });
-                let Some((t, m)) = other else {
-                    continue;
-                };
-                let (keep, kept, gone) =
-                    if (m.hits, std::cmp::Reverse(t)) > (l.hits, std::cmp::Reverse(s)) {
-                        (t, m, l)
-                    } else {
-                        (s, l, m)
-                    };
-                let existence =
-                    |slot: usize, l: &Landmark| p.map.existence(slot).unwrap_or(l.existence);
-                let existence =
-                    existence(keep, &kept).max(existence(if keep == s { t } else { s }, &gone));
-                p.map.set(
-                    keep,
-                    Landmark {
-                        hits: kept.hits + gone.hits,
-                        existence,
-                        ..kept
-                    },
-                );
-                p.map.remove(if keep == s { t } else { s });
-                stats.landmarks_merged += 1;
-            }
-        }
+    if sep2 <= 0.0 {
+        return;
     }
-
-    // 5. Existence of landmarks in view (unknown association).
-    if let (Some(range), false) = (&cfg.sensor_range, observed.is_empty() || nobs == 0) {
-        for (i, p) in chunk.iter_mut().enumerate() {
-            let pose = p.poses[r];
-            let seen = &observed[i];
-            let mut missed: Vec<usize> = Vec::new();
-            let reach = covering_radius(range.max_range * range.max_range);
-            p.map.for_each_near(pose.x, pose.y, reach, |s, l| {
-                if seen.contains(&s) {
-                    return;
-                }
-                let dx = l.gaussian.mean[0] - pose.x;
-                let dy = l.gaussian.mean[1] - pose.y;
-                // Beyond the covering radius it is out of range (the exact test is hypot).
-                if dx * dx + dy * dy > reach * reach {
-                    return;
-                }
-                let d = dx.hypot(dy);
-                if d < range.max_range
-                    && wrap_angle(dy.atan2(dx) - pose.theta).abs() < 0.5 * range.fov
+    for (i, p) in chunk.iter_mut().enumerate() {
+        for &s in &observed[i] {
+            let Some(l) = p.map.get(s).copied() else {
+                continue;
+            };
+            // The landmark of lowest slot within the separation.
+            let mut other: Option<(usize, Landmark)> = None;
+            let (lx, ly) = (l.gaussian.mean[0], l.gaussian.mean[1]);
+            p.map.for_each_near(lx, ly, covering_radius(sep2), |t, m| {
+                if t != s
+                    && (m.gaussian.mean[0] - lx).powi(2) + (m.gaussian.mean[1] - ly).powi(2) < sep2
+                    && other.is_none_or(|(o, _)| t < o)
                 {
-                    missed.push(s);
+                    other = Some((t, *m));
                 }
             });
-            for s in missed {
-                let Some(e) = p.map.existence(s) else {
-                    continue;
-                };
-                let e = e - a.existence_miss;
-                if e < 0.0 {
-                    p.map.remove(s);
-                    stats.landmarks_removed += 1;
+            let Some((t, m)) = other else {
+                continue;
+            };
+            let (keep, kept, gone) =
+                if (m.hits, std::cmp::Reverse(t)) > (l.hits, std::cmp::Reverse(s)) {
+                    (t, m, l)
                 } else {
-                    // Held apart from the landmark: no leaf copy per landmark in view.
-                    p.map.set_existence(s, e);
-                }
+                    (s, l, m)
+                };
+            let existence =
+                |slot: usize, l: &Landmark| p.map.existence(slot).unwrap_or(l.existence);
+            let existence =
+                existence(keep, &kept).max(existence(if keep == s { t } else { s }, &gone));
+            p.map.set(
+                keep,
+                Landmark {
+                    hits: kept.hits + gone.hits,
+                    existence,
+                    ..kept
+                },
+            );
+            p.map.remove(if keep == s { t } else { s });
+            stats.landmarks_merged += 1;
+        }
+    }
+}
+
+/// Phase 5 (unknown association, with a sensor range): landmarks in the sensor's field of
+/// view that the record did not observe lose existence log-odds, and are removed below
+/// zero.
+fn lower_existence_in_view(
+    ctx: &StepCtx<'_>,
+    chunk: &mut [Particle],
+    observed: &[Vec<usize>],
+    stats: &mut FilterStats,
+) {
+    let r = ctx.robot;
+    let a = &ctx.cfg.association_params;
+    let Some(range) = &ctx.cfg.sensor_range else {
+        return;
+    };
+    for (i, p) in chunk.iter_mut().enumerate() {
+        let pose = p.poses[r];
+        let seen = &observed[i];
+        let mut missed: Vec<usize> = Vec::new();
+        let reach = covering_radius(range.max_range * range.max_range);
+        p.map.for_each_near(pose.x, pose.y, reach, |s, l| {
+            if seen.contains(&s) {
+                return;
+            }
+            let dx = l.gaussian.mean[0] - pose.x;
+            let dy = l.gaussian.mean[1] - pose.y;
+            // Beyond the covering radius it is out of range (the exact test is hypot).
+            if dx * dx + dy * dy > reach * reach {
+                return;
+            }
+            let d = dx.hypot(dy);
+            if d < range.max_range && wrap_angle(dy.atan2(dx) - pose.theta).abs() < 0.5 * range.fov
+            {
+                missed.push(s);
+            }
+        });
+        for s in missed {
+            let Some(e) = p.map.existence(s) else {
+                continue;
+            };
+            let e = e - a.existence_miss;
+            if e < 0.0 {
+                p.map.remove(s);
+                stats.landmarks_removed += 1;
+            } else {
+                // Held apart from the landmark: no leaf copy per landmark in view.
+                p.map.set_existence(s, e);
             }
         }
     }
-    for p in chunk.iter_mut() {
-        if !p.log_w.is_finite() {
-            p.log_w = f64::MIN;
-        }
-    }
-    stats
 }

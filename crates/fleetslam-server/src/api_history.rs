@@ -154,7 +154,7 @@ async fn view(state: &AppState, run: &str) -> Result<View, ApiError> {
     if let Some(live) = live {
         // Published beside the state: never through the coordinator's queue, so a busy run
         // answers as fast as an idle one.
-        let s = live.handle.state.borrow().clone();
+        let s = live.handle.current_state();
         let trajectories = Arc::new(live.handle.trajectories());
         return Ok(View {
             state: serde_json::to_value(&*s).map_err(ApiError::internal)?,

@@ -3,7 +3,7 @@
 
 use crate::api_history;
 use crate::auth::AuthConfig;
-use crate::coordinator::{self, CoordinatorConfig, RecordAck, RunHandle, RunState};
+use crate::coordinator::{self, CoordinatorConfig, PublishedState, RecordAck, RunHandle};
 use crate::error::ApiError;
 use crate::history;
 use crate::limits::Limits;
@@ -406,7 +406,7 @@ pub(crate) async fn list_runs(
             // A running run's summary is its live state's.
             if let Some(l) = live.get(&row.id) {
                 row.summary = Some(api_history::summary(
-                    &l.handle.state.borrow(),
+                    &l.handle.current_state(),
                     row.records,
                     None,
                 ));
@@ -461,7 +461,7 @@ pub(crate) async fn finish_run(
     live: &LiveRun,
 ) -> Result<(), ApiError> {
     live.handle.end().await?;
-    let final_state = live.handle.state.borrow().clone();
+    let final_state = live.handle.current_state();
     let records = state.store.record_count(run).await?;
     let metrics = state
         .store
@@ -719,8 +719,13 @@ async fn stream_run(mut socket: WebSocket, handle: RunHandle, rate: f64) {
     let mut state_rx = handle.state.clone();
     let mut events = handle.events.subscribe();
     let period = std::time::Duration::from_secs_f64(1.0 / rate.max(0.1));
-    let send_state = |s: &RunState| serde_json::json!({ "type": "state", "state": s }).to_string();
-    let first = send_state(&state_rx.borrow_and_update());
+    // Built (once per publication, for every listener) and serialized only here.
+    let send_state =
+        |s: &PublishedState| serde_json::json!({ "type": "state", "state": &*s.get() }).to_string();
+    // The state last sent: a newer one is sent at the next tick, also the final one that a
+    // run publishes as its coordinator stops (a closed channel reports no change).
+    let mut sent = state_rx.borrow_and_update().clone();
+    let first = send_state(&sent);
     if socket.send(Message::Text(first.into())).await.is_err() {
         return;
     }
@@ -728,8 +733,10 @@ async fn stream_run(mut socket: WebSocket, handle: RunHandle, rate: f64) {
     loop {
         tokio::select! {
             _ = tick.tick() => {
-                if state_rx.has_changed().unwrap_or(false) {
-                    let text = send_state(&state_rx.borrow_and_update());
+                let latest = state_rx.borrow_and_update().clone();
+                if !Arc::ptr_eq(&latest, &sent) {
+                    let text = send_state(&latest);
+                    sent = latest;
                     if socket.send(Message::Text(text.into())).await.is_err() { return; }
                 }
             }
@@ -739,7 +746,8 @@ async fn stream_run(mut socket: WebSocket, handle: RunHandle, rate: f64) {
                     Err(tokio::sync::broadcast::error::RecvError::Lagged(n)) => {
                         let lag = serde_json::json!({ "type": "lagged", "missed_events": n }).to_string();
                         if socket.send(Message::Text(lag.into())).await.is_err() { return; }
-                        send_state(&state_rx.borrow_and_update())
+                        sent = state_rx.borrow_and_update().clone();
+                        send_state(&sent)
                     }
                     Err(tokio::sync::broadcast::error::RecvError::Closed) => return,
                 };

@@ -283,6 +283,7 @@ impl ServerConfig {
                 .unwrap_or_else(crate::app::default_web_dir),
             coordinator: CoordinatorConfig {
                 queue_capacity: self.queue_capacity,
+                max_backlog: crate::coordinator::DEFAULT_MAX_BACKLOG,
                 reorder_window: Duration::from_millis(self.reorder_window_ms),
                 state_rate_hz: self.state_rate_hz,
                 particle_sample: self.particle_sample,

@@ -5,9 +5,12 @@
 //! (repeat, too old, out of time order), stores the accepted ones in ONE append (group
 //! commit: acknowledged means committed), answers each request, feeds the records to the
 //! deterministic [`Merger`], and applies what the merger releases on a blocking thread where
-//! the filter's rayon work runs, off the async runtime. The state it publishes is the
-//! latest estimate in a `watch` channel: readers always see the newest, and a slow reader
-//! never slows the filter or makes memory grow.
+//! the filter's rayon work runs, off the async runtime. The two overlap: while the filter
+//! steps through one batch, the task goes on taking requests and storing them, and the next
+//! batch starts as soon as the filter is back, so a commit's fsync and the clients' round
+//! trips do not leave the filter idle. The state it publishes is the latest estimate in a
+//! `watch` channel: readers always see the newest, and a slow reader never slows the filter
+//! or makes memory grow.
 //!
 //! A record the filter fails or panics on is quarantined ([`crate::poison`]): marked in the
 //! store with the reason, counted in its robot's status, announced as a `record_quarantined`
@@ -25,8 +28,8 @@ use fleetslam_core::pose::{Pose2, PoseGaussian};
 use fleetslam_localize::LateJoinSlam;
 use fleetslam_store::{NewObservation, NewRobot, NewSnapshot, Store};
 use serde::Serialize;
-use std::collections::{BTreeMap, BTreeSet, HashMap};
-use std::sync::Arc;
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 use tokio::sync::{broadcast, mpsc, oneshot, watch};
 
@@ -35,6 +38,14 @@ use tokio::sync::{broadcast, mpsc, oneshot, watch};
 pub struct CoordinatorConfig {
     /// Requests queued per run before the server answers 503.
     pub queue_capacity: usize,
+    /// Records acknowledged but not yet stepped through by the filter (in the merge or
+    /// waiting for the filter) above which the coordinator takes no more requests while the
+    /// filter steps, until it catches up: the requests wait in the queue (beyond
+    /// `queue_capacity` they get 503). Acknowledgements do not wait for the filter, so this
+    /// is what holds back clients that post faster than the filter runs. Default
+    /// [`DEFAULT_MAX_BACKLOG`] (about 0.7 s of filter work with 1,000 particles on MRCLAM);
+    /// lower holds clients back sooner, higher lets more memory and lag build up.
+    pub max_backlog: usize,
     /// How long a silent robot holds the others back in the merge.
     pub reorder_window: Duration,
     /// Most state publications per second.
@@ -60,6 +71,7 @@ impl Default for CoordinatorConfig {
     fn default() -> Self {
         Self {
             queue_capacity: 256,
+            max_backlog: DEFAULT_MAX_BACKLOG,
             reorder_window: Duration::from_secs(2),
             state_rate_hz: 10.0,
             particle_sample: 100,
@@ -224,7 +236,8 @@ pub enum Command {
 pub struct RunHandle {
     pub id: String,
     tx: mpsc::Sender<Command>,
-    pub state: watch::Receiver<Arc<RunState>>,
+    /// The latest published state; [`RunHandle::current_state`] reads it.
+    pub state: watch::Receiver<Arc<PublishedState>>,
     /// The trajectories, published with each state (just before it): readers never ask the
     /// coordinator, and a publication shares the trajectories' sealed chunks (see
     /// [`TrajectoryLog`]).
@@ -251,9 +264,16 @@ impl RunHandle {
         rx.await.map_err(|_| self.gone())?
     }
 
+    /// The latest published state (built now if nobody has read it yet, outside the
+    /// channel's lock: the coordinator never waits for a reader).
+    pub fn current_state(&self) -> Arc<RunState> {
+        let published = self.state.borrow().clone();
+        published.get()
+    }
+
     /// The answer to a request the coordinator can no longer take.
     fn gone(&self) -> ApiError {
-        let state = self.state.borrow();
+        let state = self.current_state();
         match (&*state.status, &state.reason) {
             ("failed", Some(reason)) => ApiError::Conflict(format!(
                 "run {} failed ({reason}): it takes no more data; its state, trajectories and \
@@ -427,6 +447,10 @@ pub fn spawn(
         state_tx: None,
         traj_tx,
         cfg,
+        stepping: None,
+        queued: VecDeque::new(),
+        handed: 0,
+        last_applied: None,
     };
     if let Some(r) = recovered {
         let now = Instant::now();
@@ -434,6 +458,7 @@ pub fn spawn(
         task.last_snapshot = r.applied;
         task.trajectories = r.trajectories;
         task.traj_sent = r.trajectories_stored;
+        task.last_applied = r.last.clone();
         task.merger.restore_applied(r.last);
         for (robot, t0, seqs) in &r.robots {
             task.merger.restore_robot(robot, *t0, seqs, now);
@@ -453,7 +478,7 @@ pub fn spawn(
         }
     }
     task.filter = Some(filter);
-    let (state_tx, state_rx) = watch::channel(Arc::new(task.build_state()));
+    let (state_tx, state_rx) = watch::channel(Arc::new(PublishedState::built(task.build_state())));
     task.traj_tx
         .send_replace(Arc::new(task.trajectories.clone()));
     task.state_tx = Some(state_tx);
@@ -567,25 +592,72 @@ struct Coordinator {
     /// Something changed since the last published state.
     dirty: bool,
     events: broadcast::Sender<Event>,
-    state_tx: Option<watch::Sender<Arc<RunState>>>,
+    state_tx: Option<watch::Sender<Arc<PublishedState>>>,
     traj_tx: watch::Sender<Arc<TrajectoryLog>>,
     cfg: CoordinatorConfig,
+    /// The filter's steps under way on a blocking thread; while it is `Some`, `filter`,
+    /// `trajectories` and `since` are away with it.
+    stepping: Option<tokio::task::JoinHandle<Stepped>>,
+    /// Records the merger released, in order, that the filter has not stepped through yet.
+    queued: VecDeque<Record>,
+    /// How many records the steps under way were given.
+    handed: usize,
+    /// The key of the last record the filter stepped through (or quarantined): what the
+    /// filter holds, which snapshots record. The merger's own position is ahead of it by
+    /// the records in `queued` and under way.
+    last_applied: Option<OrderKey>,
+}
+
+/// What a blocking thread hands back: the filter, trajectories and records since the last
+/// snapshot it took, what its steps did, and the records it had no time for.
+type Stepped = (
+    LateJoinSlam,
+    TrajectoryLog,
+    Vec<Record>,
+    Applied,
+    VecDeque<Record>,
+);
+
+/// Waits for the steps under way (never resolves when there are none).
+async fn stepped(
+    stepping: &mut Option<tokio::task::JoinHandle<Stepped>>,
+) -> Result<Stepped, tokio::task::JoinError> {
+    match stepping {
+        Some(h) => h.await,
+        None => std::future::pending().await,
+    }
 }
 
 /// The most requests drained into one group commit.
 const MAX_DRAIN: usize = 64;
 
+/// Default of [`CoordinatorConfig::max_backlog`].
+pub const DEFAULT_MAX_BACKLOG: usize = 2048;
+
 impl Coordinator {
     async fn run(mut self, mut rx: mpsc::Receiver<Command>) {
         let mut end_reply = None;
         loop {
-            // Wake up for a silent robot's window, or to publish a state the throttle held.
-            let deadline = match (self.merger.next_deadline(), self.publish_due()) {
-                (Some(a), Some(b)) => Some(a.min(b)),
-                (a, b) => a.or(b),
+            // Wake up for a silent robot's window, or to publish a state the throttle held;
+            // both wait while the filter steps (its return wakes the task).
+            let deadline = if self.stepping.is_some() {
+                None
+            } else {
+                match (self.merger.next_deadline(), self.publish_due()) {
+                    (Some(a), Some(b)) => Some(a.min(b)),
+                    (a, b) => a.or(b),
+                }
             };
             let first = tokio::select! {
-                cmd = rx.recv() => match cmd { Some(c) => Some(c), None => break },
+                cmd = rx.recv(), if self.stepping.is_none() || self.backlog() < self.cfg.max_backlog => {
+                    match cmd { Some(c) => Some(c), None => break }
+                }
+                res = stepped(&mut self.stepping), if self.stepping.is_some() => {
+                    self.stepping = None;
+                    self.finish_apply(res).await;
+                    self.between_steps();
+                    None
+                }
                 _ = async {
                     match deadline {
                         Some(d) => tokio::time::sleep_until(d.into()).await,
@@ -612,7 +684,15 @@ impl Coordinator {
                         t0,
                         reply,
                     } => {
-                        let r = self.add_robot(row, start, t0).await;
+                        // The filter and the trajectories must be home.
+                        self.settle().await;
+                        let r = match &self.failed {
+                            Some(reason) => Err(ApiError::Conflict(format!(
+                                "run {} failed ({reason}): it takes no more robots",
+                                self.id
+                            ))),
+                            None => self.add_robot(row, start, t0).await,
+                        };
                         let _ = reply.send(r);
                     }
                     Command::End { reply } => {
@@ -625,9 +705,14 @@ impl Coordinator {
             if !ingests.is_empty() {
                 self.ingest(ingests).await;
             }
-            let ready = self.merger.ready(Instant::now(), ended);
-            if !ready.is_empty() {
-                self.apply(ready).await;
+            if ended || !checkpoints.is_empty() {
+                self.settle().await;
+            }
+            if ended {
+                // Everything the merger holds, in order.
+                while self.failed.is_none() && self.start_apply(true) {
+                    self.settle().await;
+                }
             }
             if let Some(reason) = &self.failed {
                 if let Some(reply) = end_reply.take() {
@@ -650,17 +735,36 @@ impl Coordinator {
                 }
                 break;
             }
-            if self.applied >= self.last_snapshot + self.cfg.snapshot_every.max(1) {
-                self.snapshot(None);
-            }
             for reply in checkpoints {
                 let (tx, rx) = oneshot::channel();
                 self.snapshot(Some(tx));
                 let stored = rx.await.map_err(ApiError::internal).and_then(|r| r);
                 let _ = reply.send(stored);
             }
-            self.publish(false);
+            self.between_steps();
         }
+        // The steps under way end with the task; their records are stored, and a restart
+        // applies them again.
+        self.settle().await;
+    }
+
+    /// Records acknowledged that the filter has not stepped through: in the merge, waiting
+    /// for the filter, and under way.
+    fn backlog(&self) -> usize {
+        self.merger.pending() + self.queued.len() + self.handed
+    }
+
+    /// While the filter is home: stores a snapshot when one is due, publishes the state
+    /// (throttled), and starts stepping through what the merger releases.
+    fn between_steps(&mut self) {
+        if self.stepping.is_some() || self.filter.is_none() || self.failed.is_some() {
+            return;
+        }
+        if self.applied >= self.last_snapshot + self.cfg.snapshot_every.max(1) {
+            self.snapshot(None);
+        }
+        self.publish(false);
+        self.start_apply(false);
     }
 
     /// Queues a snapshot of the current filter; `reply` hears when it is stored.
@@ -672,9 +776,11 @@ impl Coordinator {
         let snap = RunSnapshot {
             filter: filter.snapshot(),
             applied: self.applied,
+            // The records released by the merger but not stepped through yet are not in
+            // the filter: a recovery applies them again.
             last: self
-                .merger
-                .applied_key()
+                .last_applied
+                .as_ref()
                 .map(|k| (k.t(), k.robot().to_string(), k.seq())),
             // The points are stored in pieces beside it: only those added since the
             // previous snapshot go with this one.
@@ -978,19 +1084,35 @@ impl Coordinator {
                 seq_conflict(robot, *seq)
             });
         }
+        let (batch, bodies): (Vec<Record>, Vec<String>) = batch.into_iter().unzip();
         let stored = if batch.is_empty() {
             Ok(Vec::new())
         } else {
             let obs = batch
                 .iter()
+                .zip(bodies)
                 .map(|(r, body)| NewObservation {
                     robot_id: r.robot.clone(),
                     seq: r.seq as i64,
                     t: r.t,
-                    body: body.clone(),
+                    body,
                 })
                 .collect();
-            self.store.append(&self.id, obs).await.map(|o| o.items)
+            let (store, id) = (self.store.clone(), self.id.clone());
+            let append = async move { store.append(&id, obs).await.map(|o| o.items) };
+            tokio::pin!(append);
+            // The filter keeps stepping while the commit flushes; steps that end meanwhile
+            // are taken in, but the next batch waits for these records to be in the merge
+            // (they were checked against it as it is now).
+            loop {
+                tokio::select! {
+                    stored = &mut append => break stored,
+                    res = stepped(&mut self.stepping), if self.stepping.is_some() => {
+                        self.stepping = None;
+                        self.finish_apply(res).await;
+                    }
+                }
+            }
         };
         let stored = match stored {
             Ok(items) => items,
@@ -1006,7 +1128,7 @@ impl Coordinator {
         };
         // Durable now: update bookkeeping, feed the merger, answer.
         let now = Instant::now();
-        for ((rec, _), item) in batch.iter().zip(&stored) {
+        for (rec, item) in batch.iter().zip(&stored) {
             let acked = self.acked.get_mut(&rec.robot).expect("checked above");
             if !item.duplicate {
                 acked.insert(rec.seq, rec.t);
@@ -1026,7 +1148,7 @@ impl Coordinator {
                     Plan::Ack(a) => a,
                     Plan::Repeat(i) => repeat_acks[i].clone(),
                     Plan::Store(i) => RecordAck {
-                        seq: batch[i].0.seq,
+                        seq: batch[i].seq,
                         status: if stored[i].duplicate || !answered.insert(i) {
                             "duplicate"
                         } else {
@@ -1042,22 +1164,42 @@ impl Coordinator {
         }
     }
 
-    /// Steps the filter through `records` on a blocking thread. A record the filter fails
-    /// or panics on is quarantined and the filter rebuilt without it (see [`poison`]); a
-    /// filter that cannot be rebuilt fails the run.
-    async fn apply(&mut self, records: Vec<Record>) {
-        let mut filter = self
-            .filter
-            .take()
-            .expect("the filter is home between steps");
+    /// Starts stepping the filter through the records the merger releases (all it holds
+    /// when `flush`) on a blocking thread, unless the filter is away or nothing is ready;
+    /// says whether it started. A record the filter fails or panics on is quarantined and
+    /// the filter rebuilt without it (see [`poison`]); a filter that cannot be rebuilt
+    /// fails the run ([`Coordinator::finish_apply`]).
+    fn start_apply(&mut self, flush: bool) -> bool {
+        if self.stepping.is_some() || self.failed.is_some() {
+            return false;
+        }
+        let Some(mut filter) = self.filter.take() else {
+            return false;
+        };
+        self.queued.extend(self.merger.ready(Instant::now(), flush));
+        if self.queued.is_empty() {
+            self.filter = Some(filter);
+            return false;
+        }
+        let mut records = std::mem::take(&mut self.queued);
+        self.handed = records.len();
+        // The thread comes back after about one publication interval, so that states go
+        // out while a backlog is worked off.
+        let budget = self.min_gap();
         let mut trajectories = std::mem::take(&mut self.trajectories);
         let base = self.base.clone();
         let mut since = std::mem::take(&mut self.since);
         let recorder = self.training.as_ref().map(|(_, r)| r.clone());
-        let res = tokio::task::spawn_blocking(move || {
+        self.stepping = Some(tokio::task::spawn_blocking(move || {
             let mut out = Applied::default();
-            for r in records {
+            let started = Instant::now();
+            while let Some(r) = records.pop_front() {
+                if started.elapsed() >= budget && !out.reports.is_empty() {
+                    records.push_front(r);
+                    break;
+                }
                 let t0 = Instant::now();
+                out.last = Some(OrderKey::of(&r));
                 match poison::try_step(&mut filter, &r) {
                     Ok(rep) => {
                         let ns = t0.elapsed().as_nanos() as u64;
@@ -1083,10 +1225,23 @@ impl Coordinator {
                     }
                 }
             }
-            (filter, trajectories, since, out)
-        })
-        .await;
-        let (filter, trajectories, since, out) = match res {
+            (filter, trajectories, since, out, records)
+        }));
+        true
+    }
+
+    /// Waits for the steps under way, if any, and takes in what they did.
+    async fn settle(&mut self) {
+        if let Some(h) = self.stepping.take() {
+            let res = h.await;
+            self.finish_apply(res).await;
+        }
+    }
+
+    /// Takes in what a batch of steps did: the filter comes home, events go out, quarantined
+    /// records are marked; a filter lost fails the run.
+    async fn finish_apply(&mut self, res: Result<Stepped, tokio::task::JoinError>) {
+        let (filter, trajectories, since, out, rest) = match res {
             Ok(v) => v,
             Err(e) => {
                 // Only a bug outside the guarded steps gets here; the filter is lost.
@@ -1097,6 +1252,13 @@ impl Coordinator {
         };
         self.trajectories = trajectories;
         self.since = since;
+        // Nothing is released while the filter is away: these come first.
+        debug_assert!(self.queued.is_empty());
+        self.queued = rest;
+        self.handed = 0;
+        if out.last.is_some() {
+            self.last_applied = out.last.clone();
+        }
         if out.fatal.is_none() {
             self.filter = Some(filter);
         }
@@ -1178,11 +1340,14 @@ impl Coordinator {
         if let Some(tx) = &self.state_tx {
             let mut s = match &self.filter {
                 Some(_) => self.build_state(),
-                None => (**tx.borrow()).clone(),
+                None => {
+                    let last = tx.borrow().clone();
+                    (*last.get()).clone()
+                }
             };
             s.status = "failed".into();
             s.reason = Some(reason.clone());
-            tx.send_replace(Arc::new(s));
+            tx.send_replace(Arc::new(PublishedState::built(s)));
         }
         let _ = self.events.send(Event::RunFailed {
             reason: reason.clone(),
@@ -1204,6 +1369,11 @@ impl Coordinator {
     }
 
     fn publish(&mut self, force: bool) {
+        if self.filter.is_none() {
+            // Away stepping (or lost): published once it is home.
+            self.dirty = true;
+            return;
+        }
         if !force
             && self
                 .last_publish
@@ -1214,7 +1384,8 @@ impl Coordinator {
         }
         self.dirty = false;
         self.last_publish = Some(Instant::now());
-        let state = Arc::new(self.build_state());
+        let filter = self.filter.as_ref().expect("checked above").clone();
+        let state = Arc::new(PublishedState::lazy(self.capture(), filter));
         self.step_ns.clear();
         // The trajectories first: a reader that reads the state, then the trajectories, gets
         // trajectories at least as new as the state.
@@ -1225,42 +1396,164 @@ impl Coordinator {
         }
     }
 
+    /// The state now, built here (the final state, a failed run's).
     fn build_state(&self) -> RunState {
         let filter = self
             .filter
             .as_ref()
             .expect("the filter is home between steps");
-        let applied_t = self.merger.applied_t();
+        self.capture().build(filter)
+    }
+
+    /// The coordinator's part of the state now; [`StateParts::build`] adds the filter's.
+    fn capture(&self) -> StateParts {
+        let applied_t = self.last_applied.as_ref().map(OrderKey::t);
+        let books = self
+            .acked
+            .iter()
+            .map(|(id, a)| {
+                let book = RobotBook {
+                    last_seq: a.max,
+                    last_t: a.last_t,
+                    records: a.records,
+                    gaps: a.gaps(),
+                    seq_conflicts: a.seq_conflicts,
+                    queue_depth: self.merger.pending_of(id),
+                    lag_s: match (a.last_t, applied_t) {
+                        (Some(l), Some(t)) => (l - t).max(0.0),
+                        _ => 0.0,
+                    },
+                    quarantined: a.quarantined,
+                    quarantine_reason: a.quarantine_reason.clone(),
+                };
+                (id.clone(), book)
+            })
+            .collect();
+        let mut step_ns = self.step_ns.clone();
+        step_ns.sort_unstable();
+        StateParts {
+            run: self.id.clone(),
+            status: self.status.clone(),
+            applied: self.applied,
+            applied_t,
+            particle_sample: self.cfg.particle_sample,
+            books,
+            step_ms: step_ns
+                .get(step_ns.len() / 2)
+                .map_or(0.0, |n| *n as f64 / 1e6),
+        }
+    }
+}
+
+/// The coordinator's figures of a robot, laid over the filter's in a state.
+#[derive(Debug, Clone)]
+struct RobotBook {
+    last_seq: Option<u64>,
+    last_t: Option<f64>,
+    records: u64,
+    gaps: u64,
+    seq_conflicts: u64,
+    queue_depth: usize,
+    lag_s: f64,
+    quarantined: u64,
+    quarantine_reason: Option<String>,
+}
+
+/// What a state holds besides what it reads from the filter.
+#[derive(Debug, Clone)]
+struct StateParts {
+    run: String,
+    status: String,
+    applied: u64,
+    applied_t: Option<f64>,
+    particle_sample: usize,
+    books: HashMap<String, RobotBook>,
+    step_ms: f64,
+}
+
+impl StateParts {
+    /// The state of `filter` with these figures.
+    fn build(&self, filter: &LateJoinSlam) -> RunState {
         let mut state = history::base_state(
-            &self.id,
+            &self.run,
             &self.status,
             filter,
             self.applied,
-            applied_t,
-            self.cfg.particle_sample,
+            self.applied_t,
+            self.particle_sample,
         );
         for r in &mut state.robots {
-            if let Some(a) = self.acked.get(&r.id) {
-                r.last_seq = a.max;
-                r.last_t = a.last_t;
-                r.records = a.records;
-                r.gaps = a.gaps();
-                r.seq_conflicts = a.seq_conflicts;
-                r.queue_depth = self.merger.pending_of(&r.id);
-                r.lag_s = match (a.last_t, applied_t) {
-                    (Some(l), Some(t)) => (l - t).max(0.0),
-                    _ => 0.0,
-                };
-                r.quarantined = a.quarantined;
-                r.quarantine_reason = a.quarantine_reason.clone();
+            if let Some(b) = self.books.get(&r.id) {
+                r.last_seq = b.last_seq;
+                r.last_t = b.last_t;
+                r.records = b.records;
+                r.gaps = b.gaps;
+                r.seq_conflicts = b.seq_conflicts;
+                r.queue_depth = b.queue_depth;
+                r.lag_s = b.lag_s;
+                r.quarantined = b.quarantined;
+                r.quarantine_reason = b.quarantine_reason.clone();
             }
         }
-        let mut step_ns = self.step_ns.clone();
-        step_ns.sort_unstable();
-        state.step_ms = step_ns
-            .get(step_ns.len() / 2)
-            .map_or(0.0, |n| *n as f64 / 1e6);
+        state.step_ms = self.step_ms;
         state
+    }
+}
+
+/// A published state of a run. The coordinator publishes a copy of the filter (particles
+/// share their maps: a few small vectors per particle) with its own figures; the state
+/// (estimate, landmarks, particle sample) is built on the first read, on the reader's
+/// thread, once for all readers of this publication. States that nobody reads are never
+/// built, and building one never holds the filter back.
+pub struct PublishedState {
+    /// What the state is built from, until it is.
+    parts: Mutex<Option<(StateParts, LateJoinSlam)>>,
+    built: OnceLock<Arc<RunState>>,
+}
+
+impl PublishedState {
+    /// A state built already.
+    fn built(state: RunState) -> Self {
+        Self {
+            parts: Mutex::new(None),
+            built: OnceLock::from(Arc::new(state)),
+        }
+    }
+
+    /// A state to build from `filter` when first read.
+    fn lazy(parts: StateParts, filter: LateJoinSlam) -> Self {
+        Self {
+            parts: Mutex::new(Some((parts, filter))),
+            built: OnceLock::new(),
+        }
+    }
+
+    /// The state (built now if nobody has read it yet).
+    pub fn get(&self) -> Arc<RunState> {
+        self.built
+            .get_or_init(|| {
+                let (parts, filter) = self
+                    .parts
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .take()
+                    .expect("an unbuilt state keeps its parts until it is built");
+                Arc::new(parts.build(&filter))
+            })
+            .clone()
+    }
+
+    /// True once the state has been built (read, or published built).
+    pub fn is_built(&self) -> bool {
+        self.built.get().is_some()
+    }
+}
+
+impl std::fmt::Debug for PublishedState {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("PublishedState")
+            .field("built", &self.built.get())
+            .finish_non_exhaustive()
     }
 }
 
@@ -1275,6 +1568,8 @@ struct Applied {
     joins: Vec<String>,
     /// Why the filter could not be rebuilt, when it could not: the run fails.
     fatal: Option<String>,
+    /// The key of the last record stepped through or quarantined.
+    last: Option<OrderKey>,
 }
 
 fn reject(seq: u64, code: &'static str, error: String) -> RecordAck {

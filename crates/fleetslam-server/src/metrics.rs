@@ -157,7 +157,7 @@ pub async fn metrics(State(state): State<AppState>) -> Response {
     m.runs_active.set(runs.len() as i64);
     for (id, live) in runs.iter() {
         let l = RunLabels { run: id.clone() };
-        let s = live.handle.state.borrow().clone();
+        let s = live.handle.current_state();
         m.queue_depth
             .get_or_create(&l)
             .set(live.handle.queue_depth() as i64);

@@ -190,9 +190,9 @@ async fn a_panicking_record_is_quarantined_live_and_the_run_goes_on() {
         assert!(acks.iter().all(|a| a.status == "stored"), "{acks:?}");
     }
     // Everything before the poison record and after it is applied once the merge releases it.
-    let mut state = handle.state.borrow().clone();
+    let mut state = handle.current_state();
     for _ in 0..500 {
-        state = handle.state.borrow().clone();
+        state = handle.current_state();
         if state.applied as usize >= n - 1 - 20 {
             break;
         }
@@ -204,7 +204,7 @@ async fn a_panicking_record_is_quarantined_live_and_the_run_goes_on() {
         state.applied
     );
     handle.end().await.unwrap();
-    let state = handle.state.borrow().clone();
+    let state = handle.current_state();
     assert_eq!(state.status, "ended");
     assert_eq!(
         state.applied as usize,

@@ -60,6 +60,9 @@ async fn reads_answer_while_the_coordinator_is_stuck_with_a_full_queue() {
     let store = Store::open_default(dir.path()).await.unwrap();
     let mut api = ApiConfig::default();
     api.coordinator.queue_capacity = 1;
+    // The coordinator goes on storing requests while the filter steps, up to a backlog of
+    // acknowledged records: with none allowed, it takes no request while the step is stuck.
+    api.coordinator.max_backlog = 1;
     let state = AppState::new(store.clone(), api);
     let h = Harness {
         router: app(state.clone()),

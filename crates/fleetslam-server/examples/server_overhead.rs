@@ -1,0 +1,334 @@
+//! The server's overhead on a whole run: a log posted over HTTP by its robots as concurrent
+//! clients (one per robot, each waiting for its acknowledgement before its next request) to
+//! a real server on 127.0.0.1 with a durable SQLite store (every record committed before its
+//! acknowledgement) and one websocket listener on the run's `live` stream, against the same
+//! log through `run_log` offline (same particles and seed), in one process. Rounds
+//! alternate the two, so that both see the same load on the machine.
+//!
+//! ```sh
+//! cargo run --profile test -p fleetslam-server --example server_overhead -- \
+//!     ../shared/datasets/mrclam-dataset6 [PARTICLES] [ROUNDS] [DURATION_S]
+//! ```
+//!
+//! The source is a UTIAS MRCLAM data set's directory, imported as `fleetslam import mrclam`
+//! does (its first `DURATION_S` seconds; all of it when omitted), or a log file
+//! (`log.ndjson`). `PARTICLES` defaults to 1,000 and `ROUNDS` to 3; seed 1, [`BATCH`]
+//! records per request.
+//! Per round it prints the offline wall time, the server's wall time (from the first post
+//! until the run's end is answered: every record stored, applied and the run's result
+//! stored) and their ratio, and checks that the server's trajectories and landmarks equal
+//! the offline run's bit for bit; then the median ratio.
+
+use fleetslam_core::config::FilterConfig;
+use fleetslam_core::filter::FastSlam;
+use fleetslam_core::log::{Log, Record};
+use fleetslam_data::import::{MrclamOptions, import_mrclam};
+use fleetslam_data::run::{RunOutput, TrajectoryEstimate, run_log};
+use fleetslam_server::config::ServerConfig;
+use futures::StreamExt;
+use serde_json::{Value, json};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+/// Records per request (as `fleetslam replay --batch 20`).
+const BATCH: usize = 20;
+
+/// What the websocket listener saw.
+#[derive(Debug, Default)]
+struct Heard {
+    states: u64,
+    events: u64,
+    /// `applied` of the newest state received.
+    last_applied: u64,
+}
+
+async fn post(c: &reqwest::Client, url: &str, token: Option<&str>, body: &Value) -> Value {
+    let mut req = c.post(url).json(body);
+    if let Some(t) = token {
+        req = req.bearer_auth(t);
+    }
+    let resp = req.send().await.unwrap();
+    let status = resp.status();
+    let v: Value = resp.json().await.unwrap_or(Value::Null);
+    assert!(status.is_success(), "POST {url}: {status}: {v}");
+    v
+}
+
+/// What one server round measured and returned.
+struct Round {
+    /// Wall time [s].
+    wall: f64,
+    /// Of which the filter's steps [s].
+    steps_s: f64,
+    traj: Value,
+    state: Value,
+    heard: Heard,
+    /// Requests refused as busy (503) and retried.
+    busy: u64,
+}
+
+async fn server_round(log: &Log, particles: usize, batch: usize) -> Round {
+    let dir = tempfile::tempdir().unwrap();
+    let running = fleetslam_server::server::start(&ServerConfig {
+        bind: "127.0.0.1:0".into(),
+        data_dir: dir.path().to_path_buf(),
+        ..ServerConfig::default()
+    })
+    .await
+    .unwrap();
+    let base = format!("http://{}", running.addr);
+    let c = reqwest::Client::new();
+    let v = post(
+        &c,
+        &format!("{base}/v1/runs"),
+        None,
+        &json!({"name": "server_overhead", "header": log.header,
+                "config": {"particles": particles, "seed": 1}}),
+    )
+    .await;
+    let run = v["id"].as_str().unwrap().to_string();
+    let mut tokens = Vec::new();
+    for r in &log.header.robots {
+        let v = post(
+            &c,
+            &format!("{base}/v1/runs/{run}/robots"),
+            None,
+            &json!({"id": r.id, "start": r.start, "t0": r.t0}),
+        )
+        .await;
+        tokens.push((r.id.clone(), v["token"].as_str().unwrap().to_string()));
+    }
+    // The listener reads every message, as the dashboard does.
+    let (mut ws, _) =
+        tokio_tungstenite::connect_async(format!("ws://{}/v1/runs/{run}/live", running.addr))
+            .await
+            .unwrap();
+    let listener = tokio::spawn(async move {
+        let mut heard = Heard::default();
+        while let Some(Ok(msg)) = ws.next().await {
+            let Ok(text) = msg.into_text() else { continue };
+            let v: Value = serde_json::from_str(&text).unwrap();
+            match v["type"].as_str() {
+                Some("state") => {
+                    heard.states += 1;
+                    heard.last_applied = v["state"]["applied"].as_u64().unwrap();
+                }
+                Some("event") => {
+                    heard.events += 1;
+                    if v["event"]["event"] == "run_ended" {
+                        // The final state follows within one tick; wait for it.
+                        let deadline = tokio::time::sleep(Duration::from_secs(2));
+                        tokio::pin!(deadline);
+                        loop {
+                            tokio::select! {
+                                _ = &mut deadline => return heard,
+                                m = ws.next() => {
+                                    let Some(Ok(m)) = m else { return heard };
+                                    let Ok(text) = m.into_text() else { continue };
+                                    let v: Value = serde_json::from_str(&text).unwrap();
+                                    if v["type"] == "state" {
+                                        heard.states += 1;
+                                        heard.last_applied =
+                                            v["state"]["applied"].as_u64().unwrap();
+                                        if v["state"]["status"] == "ended" {
+                                            return heard;
+                                        }
+                                    }
+                                }
+                            }
+                        }
+                    }
+                }
+                _ => {}
+            }
+        }
+        heard
+    });
+    let busy = Arc::new(AtomicU64::new(0));
+    let started = Instant::now();
+    let mut clients = Vec::new();
+    for (robot, token) in tokens {
+        let records: Vec<Record> = log
+            .records
+            .iter()
+            .filter(|r| r.robot == robot)
+            .cloned()
+            .collect();
+        let (c, url, busy) = (
+            c.clone(),
+            format!("{base}/v1/runs/{run}/observations"),
+            busy.clone(),
+        );
+        clients.push(tokio::spawn(async move {
+            for chunk in records.chunks(batch) {
+                loop {
+                    let resp = c
+                        .post(&url)
+                        .bearer_auth(&token)
+                        .json(chunk)
+                        .send()
+                        .await
+                        .unwrap();
+                    if resp.status() == reqwest::StatusCode::SERVICE_UNAVAILABLE {
+                        busy.fetch_add(1, Ordering::Relaxed);
+                        tokio::time::sleep(Duration::from_millis(20)).await;
+                        continue;
+                    }
+                    let status = resp.status();
+                    let v: Value = resp.json().await.unwrap();
+                    assert_eq!(status, reqwest::StatusCode::OK, "robot {robot}: {v}");
+                    break;
+                }
+            }
+        }));
+    }
+    for t in clients {
+        t.await.unwrap();
+    }
+    let resp = c
+        .post(format!("{base}/v1/runs/{run}/end"))
+        .send()
+        .await
+        .unwrap();
+    assert!(resp.status().is_success(), "{}", resp.status());
+    let wall = started.elapsed().as_secs_f64();
+    let heard = tokio::time::timeout(Duration::from_secs(10), listener)
+        .await
+        .expect("the websocket listener heard the run end")
+        .unwrap();
+    let get = |path: String| {
+        let c = c.clone();
+        async move {
+            c.get(path)
+                .send()
+                .await
+                .unwrap()
+                .json::<Value>()
+                .await
+                .unwrap()
+        }
+    };
+    let traj = get(format!("{base}/v1/runs/{run}/trajectories")).await;
+    let state = get(format!("{base}/v1/runs/{run}/state")).await;
+    // The time the filter spent in its steps, from the run's stored metrics.
+    let result: Value = serde_json::from_str(
+        &running
+            .store
+            .get_artifact(&run, fleetslam_server::history::RESULT)
+            .await
+            .unwrap()
+            .expect("an ended run has its result"),
+    )
+    .unwrap();
+    let steps_s = result["metrics"]["step_ms_mean"].as_f64().unwrap()
+        * result["metrics"]["applied"].as_f64().unwrap()
+        / 1e3;
+    running.stop().await.unwrap();
+    Round {
+        wall,
+        steps_s,
+        traj,
+        state,
+        heard,
+        busy: busy.load(Ordering::Relaxed),
+    }
+}
+
+fn offline_round(log: &Log, particles: usize) -> (f64, RunOutput) {
+    let mut cfg = FilterConfig::from_header(&log.header);
+    cfg.particles = particles;
+    cfg.seed = 1;
+    let mut slam = FastSlam::new(cfg).unwrap();
+    let started = Instant::now();
+    let out = run_log(&mut slam, log, TrajectoryEstimate::Mean, |_, _| {}).unwrap();
+    (started.elapsed().as_secs_f64(), out)
+}
+
+/// Panics unless the server's trajectories and landmarks are the offline run's, bit for bit.
+fn check_identical(out: &RunOutput, traj: &Value, state: &Value) {
+    for (robot, pts) in &out.estimate.trajectories {
+        let offline: Vec<[f64; 4]> = pts
+            .iter()
+            .map(|p| [p.t, p.pose.x, p.pose.y, p.pose.theta])
+            .collect();
+        assert_eq!(
+            traj["robots"][robot],
+            json!(offline),
+            "robot {robot}'s trajectory differs from the offline run's"
+        );
+    }
+    let offline: Vec<Value> = out
+        .final_estimate
+        .landmarks
+        .iter()
+        .map(|l| json!({"mean": l.gaussian.mean, "cov": l.gaussian.cov}))
+        .collect();
+    let server: Vec<Value> = state["landmarks"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| json!({"mean": l["mean"], "cov": l["cov"]}))
+        .collect();
+    assert_eq!(
+        server, offline,
+        "the landmarks differ from the offline run's"
+    );
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let usage = "usage: server_overhead MRCLAM_DIR|LOG [PARTICLES] [ROUNDS] [DURATION_S]";
+    let path = std::path::Path::new(args.get(1).expect(usage));
+    let particles: usize = args.get(2).map_or(1000, |p| p.parse().expect(usage));
+    let rounds: usize = args.get(3).map_or(3, |p| p.parse().expect(usage));
+    let duration: Option<f64> = args.get(4).map(|p| p.parse().expect(usage));
+    let batch = BATCH;
+    let mut log = if path.is_dir() {
+        let opts = MrclamOptions {
+            duration,
+            ..MrclamOptions::default()
+        };
+        import_mrclam(path, &opts).unwrap().log
+    } else {
+        Log::read_path(path).unwrap()
+    };
+    log.sort();
+    let n = log.records.len();
+    println!(
+        "{n} records, {} robots, {particles} particles, seed 1, {batch} records per request, {} cores",
+        log.header.robots.len(),
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    );
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let mut ratios = Vec::new();
+    for round in 1..=rounds {
+        let (offline_s, out) = offline_round(&log, particles);
+        let r = rt.block_on(server_round(&log, particles, batch));
+        assert_eq!(r.state["applied"].as_u64(), Some(n as u64), "{}", r.state);
+        check_identical(&out, &r.traj, &r.state);
+        assert!(
+            r.heard.states > 0,
+            "the websocket listener received no state"
+        );
+        assert_eq!(
+            r.heard.last_applied, n as u64,
+            "the websocket listener did not receive the final state"
+        );
+        let ratio = r.wall / offline_s;
+        ratios.push(ratio);
+        println!(
+            "round {round}: offline {offline_s:.2} s, server {:.2} s (filter steps {:.2} s), \
+             ratio {ratio:.3} (identical; listener: {} states, {} events; {} requests retried \
+             after 503)",
+            r.wall, r.steps_s, r.heard.states, r.heard.events, r.busy
+        );
+    }
+    ratios.sort_by(f64::total_cmp);
+    println!(
+        "median ratio {:.3} over {rounds} rounds (min {:.3}, max {:.3})",
+        ratios[ratios.len() / 2],
+        ratios[0],
+        ratios[ratios.len() - 1]
+    );
+}

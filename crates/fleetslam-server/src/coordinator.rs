@@ -437,6 +437,7 @@ pub fn spawn(
         traj_sent: BTreeMap::new(),
         trajectories: TrajectoryLog::new(),
         all_step_ns: Vec::new(),
+        observations_at_start: 0,
         snapshots,
         training,
         status: "active".into(),
@@ -477,6 +478,7 @@ pub fn spawn(
             }
         }
     }
+    task.observations_at_start = filter.slam().stats().observations;
     task.filter = Some(filter);
     let (state_tx, state_rx) = watch::channel(Arc::new(PublishedState::built(task.build_state())));
     task.traj_tx
@@ -582,6 +584,10 @@ struct Coordinator {
     trajectories: TrajectoryLog,
     /// Every step time of this process's life of the run [ns].
     all_step_ns: Vec<u64>,
+    /// The filter's landmark observation count when this process took the run (after a
+    /// recovery, what the snapshot's filter had applied), so that the metrics divide the
+    /// step times by the observations of those steps.
+    observations_at_start: u64,
     snapshots: mpsc::UnboundedSender<SnapshotJob>,
     /// The run logs a sample of its landmark updates as training rows: they are stored with
     /// each snapshot, so a recovery re-records exactly those after the latest one.
@@ -843,6 +849,8 @@ impl Coordinator {
                 .map_or(0.0, |v| *v as f64 / 1e6)
         };
         let stats = filter.slam().stats();
+        let particles = filter.slam().config().particles;
+        let total_s = ns.iter().sum::<u64>() as f64 / 1e9;
         RunMetrics {
             applied: self.applied,
             t_start: self.trajectories.first_t(),
@@ -865,6 +873,18 @@ impl Coordinator {
             resamples: stats.resamples,
             landmarks: state.landmarks.len(),
             final_ess: state.ess,
+            ns_per_particle_record: fleetslam_data::run::per_particle_ns(
+                total_s,
+                particles,
+                ns.len() as u64,
+            ),
+            ns_per_particle_observation: fleetslam_data::run::per_particle_ns(
+                total_s,
+                particles,
+                stats
+                    .observations
+                    .saturating_sub(self.observations_at_start),
+            ),
         }
     }
 

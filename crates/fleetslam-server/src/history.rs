@@ -174,6 +174,13 @@ pub struct RunMetrics {
     pub resamples: u64,
     pub landmarks: usize,
     pub final_ess: f64,
+    /// The filter's step time in this process per particle and record [ns] (a live run has
+    /// no single wall time: the sum of its step times stands for it).
+    #[serde(default)]
+    pub ns_per_particle_record: f64,
+    /// The same per particle and landmark observation of those steps [ns].
+    #[serde(default)]
+    pub ns_per_particle_observation: f64,
 }
 
 /// What a run leaves when it ends: its final state, trajectories and metrics.

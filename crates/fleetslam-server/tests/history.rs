@@ -193,6 +193,21 @@ async fn scrub_export_truth_rerun_and_delete() {
         metrics["applied"].as_u64().unwrap() as usize,
         log.records.len()
     );
+    // The step time per particle and record, and per particle and observation: the mean
+    // step time spread over the particles, and over the log's observations.
+    let per = |k: &str| metrics[k].as_f64().unwrap();
+    let observations: usize = log.records.iter().map(|r| r.landmarks.len()).sum();
+    let per_record = per("ns_per_particle_record");
+    assert!(
+        (per_record - per("step_ms_mean") * 1e6 / per("particles")).abs() <= 1e-6 * per_record,
+        "{metrics}"
+    );
+    let per_obs = per("ns_per_particle_observation");
+    assert!(
+        (per_obs * observations as f64 - per_record * log.records.len() as f64).abs()
+            <= 1e-6 * per_obs * observations as f64,
+        "{metrics}"
+    );
 
     // Ground truth and evaluation.
     let (s, _) = h.get(&format!("/v1/runs/{run}/evaluation")).await;

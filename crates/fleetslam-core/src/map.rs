@@ -72,17 +72,19 @@ pub struct Landmark {
 }
 
 #[derive(Debug, Clone)]
+/// A node of the trie, behind its own `Arc` so that a branch holds 8 small handles (a copied
+/// branch is 128 bytes, a copied leaf 4 landmarks).
 enum Node {
-    Branch([Option<Arc<Node>>; BRANCH]),
-    Leaf([Option<Landmark>; LEAF]),
+    Branch(Arc<[Option<Node>; BRANCH]>),
+    Leaf(Arc<[Option<Landmark>; LEAF]>),
 }
 
 impl Node {
     fn empty(leaf: bool) -> Node {
         if leaf {
-            Node::Leaf([None; LEAF])
+            Node::Leaf(Arc::new([None; LEAF]))
         } else {
-            Node::Branch(Default::default())
+            Node::Branch(Arc::new(Default::default()))
         }
     }
 }
@@ -114,7 +116,7 @@ fn cell(v: f64) -> i32 {
 /// A persistent map of landmark slots.
 #[derive(Debug, Clone, Default)]
 pub struct LandmarkMap {
-    root: Option<Arc<Node>>,
+    root: Option<Node>,
     /// Branch levels above the leaves; the trie holds `LEAF · BRANCH^height` slots.
     height: u32,
     /// Number of slots (including empty ones).
@@ -171,10 +173,10 @@ impl LandmarkMap {
         if slot >= self.slots {
             return None;
         }
-        let mut node = self.root.as_deref()?;
+        let mut node = self.root.as_ref()?;
         for level in (0..self.height).rev() {
             match node {
-                Node::Branch(c) => node = c[Self::child(slot, level)].as_deref()?,
+                Node::Branch(c) => node = c[Self::child(slot, level)].as_ref()?,
                 Node::Leaf(_) => unreachable!("a leaf above the leaf level"),
             }
         }
@@ -188,9 +190,9 @@ impl LandmarkMap {
     fn grow_to(&mut self, len: usize) {
         while Self::capacity(self.height) < len {
             if let Some(old) = self.root.take() {
-                let mut c: [Option<Arc<Node>>; BRANCH] = Default::default();
+                let mut c: [Option<Node>; BRANCH] = Default::default();
                 c[0] = Some(old);
-                self.root = Some(Arc::new(Node::Branch(c)));
+                self.root = Some(Node::Branch(Arc::new(c)));
             }
             self.height += 1;
         }
@@ -201,21 +203,16 @@ impl LandmarkMap {
     fn cell_mut(&mut self, slot: usize) -> &mut Option<Landmark> {
         debug_assert!(slot < self.slots);
         let height = self.height;
-        let mut node = Arc::make_mut(
-            self.root
-                .get_or_insert_with(|| Arc::new(Node::empty(height == 0))),
-        );
+        let mut node = self.root.get_or_insert_with(|| Node::empty(height == 0));
         for level in (0..height).rev() {
             node = match node {
-                Node::Branch(c) => Arc::make_mut(
-                    c[Self::child(slot, level)]
-                        .get_or_insert_with(|| Arc::new(Node::empty(level == 0))),
-                ),
+                Node::Branch(c) => Arc::make_mut(c)[Self::child(slot, level)]
+                    .get_or_insert_with(|| Node::empty(level == 0)),
                 Node::Leaf(_) => unreachable!("a leaf above the leaf level"),
             };
         }
         match node {
-            Node::Leaf(l) => &mut l[slot & (LEAF - 1)],
+            Node::Leaf(l) => &mut Arc::make_mut(l)[slot & (LEAF - 1)],
             Node::Branch(_) => unreachable!("a branch at the leaf level"),
         }
     }
@@ -402,7 +399,7 @@ impl LandmarkMap {
                 }
             }
         }
-        if let Some(root) = self.root.as_deref() {
+        if let Some(root) = self.root.as_ref() {
             walk(root, 0, self.height.wrapping_sub(1), &mut f);
         }
     }
@@ -410,7 +407,7 @@ impl LandmarkMap {
     /// Present landmarks with their slots, in slot order.
     pub fn iter(&self) -> Iter<'_> {
         let mut stack = Vec::with_capacity(self.height as usize + 1);
-        if let Some(root) = self.root.as_deref() {
+        if let Some(root) = self.root.as_ref() {
             stack.push((root, 0usize, 0usize));
         }
         Iter {
@@ -453,7 +450,7 @@ impl<'a> Iterator for Iter<'a> {
                     while *next < BRANCH && child.is_none() {
                         let i = *next;
                         *next += 1;
-                        child = c[i].as_deref().map(|n| (n, *base + (i << shift)));
+                        child = c[i].as_ref().map(|n| (n, *base + (i << shift)));
                     }
                     if let Some((n, b)) = child {
                         self.stack.push((n, b, 0));

@@ -14,12 +14,12 @@ use fleetslam_core::updater::{LandmarkGaussian, LandmarkUpdater, UpdateInput, Up
 use fleetslam_data::run::{RunOutput, TrajectoryEstimate, run_log};
 use fleetslam_server::app::{ApiConfig, AppState, app};
 use fleetslam_server::coordinator::{self, CoordinatorConfig, Event};
-use fleetslam_store::{NewObservation, NewRobot, NewRun, Store};
+use fleetslam_store::{NewObservation, NewRobot, Store};
 use serde_json::{Value, json};
 use std::sync::Arc;
 
 mod common;
-use common::{Harness, setup, sim_log};
+use common::{Harness, setup, sim_log, store_with_run};
 
 /// The EKF, except that it panics on a measurement whose first component is `magic`: a
 /// deterministic poison record, through the coordinator's public `spawn`.
@@ -132,19 +132,7 @@ async fn a_panicking_record_is_quarantined_live_and_the_run_goes_on() {
     let poison = (posted[poison_at].robot.clone(), posted[poison_at].seq);
 
     let dir = tempfile::tempdir().unwrap();
-    let store = Store::open_default(dir.path()).await.unwrap();
-    let mut cfg = FilterConfig::from_header(&log.header);
-    cfg.particles = 30;
-    cfg.seed = 6;
-    store
-        .create_run(&NewRun {
-            id: "p".into(),
-            name: None,
-            config: serde_json::to_value(&cfg).unwrap(),
-            header: None,
-        })
-        .await
-        .unwrap();
+    let (store, cfg) = store_with_run(dir.path(), "p", &log, 30, 6).await;
     let updater = Arc::new(PanicOn {
         inner: EkfUpdater::new(cfg.landmark_kind, &cfg.sensor_noise),
         magic: MAGIC,

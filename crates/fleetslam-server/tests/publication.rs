@@ -3,37 +3,24 @@
 //! state of the filter as it was when published, equal to one built eagerly there; and a
 //! websocket listener receives the run's final state.
 
-use fleetslam_core::config::FilterConfig;
 use fleetslam_core::log::{Record, record_order};
 use fleetslam_localize::LateJoinSlam;
 use fleetslam_server::app::{ApiConfig, AppState, app};
 use fleetslam_server::coordinator::{self, CoordinatorConfig};
 use fleetslam_server::history;
-use fleetslam_store::{NewRobot, NewRun, Store};
+use fleetslam_store::{NewRobot, Store};
 use futures::StreamExt;
 use serde_json::{Value, json};
 use std::time::Duration;
 
 mod common;
-use common::sim_log;
+use common::{sim_log, store_with_run};
 
 #[tokio::test]
 async fn a_state_published_lazily_equals_the_eager_one_and_is_built_only_when_read() {
     let log = sim_log(2, 12.0);
     let dir = tempfile::tempdir().unwrap();
-    let store = Store::open_default(dir.path()).await.unwrap();
-    let mut cfg = FilterConfig::from_header(&log.header);
-    cfg.particles = 40;
-    cfg.seed = 3;
-    store
-        .create_run(&NewRun {
-            id: "lazy".into(),
-            name: None,
-            config: serde_json::to_value(&cfg).unwrap(),
-            header: None,
-        })
-        .await
-        .unwrap();
+    let (store, cfg) = store_with_run(dir.path(), "lazy", &log, 40, 3).await;
     let filter = LateJoinSlam::new(cfg, Default::default()).unwrap();
     // The same filter, stepped here by hand: the eager reference.
     let mut twin = filter.clone();
@@ -239,19 +226,7 @@ async fn snapshots_taken_while_released_records_wait_for_the_filter_cover_only_a
     //! position of the filter, not the merger's, or a recovery would skip the waiting ones.
     let log = sim_log(2, 12.0);
     let dir = tempfile::tempdir().unwrap();
-    let store = Store::open_default(dir.path()).await.unwrap();
-    let mut cfg = FilterConfig::from_header(&log.header);
-    cfg.particles = 60;
-    cfg.seed = 4;
-    store
-        .create_run(&NewRun {
-            id: "snap".into(),
-            name: None,
-            config: serde_json::to_value(&cfg).unwrap(),
-            header: None,
-        })
-        .await
-        .unwrap();
+    let (store, cfg) = store_with_run(dir.path(), "snap", &log, 60, 4).await;
     let filter = LateJoinSlam::new(cfg, Default::default()).unwrap();
     let coord = CoordinatorConfig {
         // Slices of 50 us (a step or two): most leave released records waiting.

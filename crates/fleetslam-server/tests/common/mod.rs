@@ -3,10 +3,11 @@
 
 use axum::body::Body;
 use axum::http::{Request, StatusCode, header};
+use fleetslam_core::config::FilterConfig;
 use fleetslam_core::log::Log;
 use fleetslam_data::sim::{SimConfig, simulate};
 use fleetslam_server::app::{ApiConfig, AppState, app};
-use fleetslam_store::Store;
+use fleetslam_store::{NewRun, Store};
 use serde_json::{Value, json};
 use tower::ServiceExt;
 
@@ -148,4 +149,30 @@ pub async fn setup(h: &Harness, log: &Log, config: Value) -> (String, Vec<(Strin
         tokens.push((r.id.clone(), v["token"].as_str().unwrap().to_string()));
     }
     (run, tokens)
+}
+
+/// A fresh SQLite store in `dir` holding one run `id` for `log`, with the header's filter
+/// configuration at `particles` and `seed`: the set-up of the tests that drive a
+/// coordinator directly.
+pub async fn store_with_run(
+    dir: &std::path::Path,
+    id: &str,
+    log: &Log,
+    particles: usize,
+    seed: u64,
+) -> (Store, FilterConfig) {
+    let store = Store::open_default(dir).await.unwrap();
+    let mut cfg = FilterConfig::from_header(&log.header);
+    cfg.particles = particles;
+    cfg.seed = seed;
+    store
+        .create_run(&NewRun {
+            id: id.into(),
+            name: None,
+            config: serde_json::to_value(&cfg).unwrap(),
+            header: None,
+        })
+        .await
+        .unwrap();
+    (store, cfg)
 }

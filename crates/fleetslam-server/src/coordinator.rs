@@ -1204,8 +1204,11 @@ impl Coordinator {
         let mut records = std::mem::take(&mut self.queued);
         self.handed = records.len();
         // The thread comes back after about one publication interval, so that states go
-        // out while a backlog is worked off.
+        // out while a backlog is worked off, and when a snapshot is due, so that snapshots
+        // fall every `snapshot_every` records however fast the filter runs.
         let budget = self.min_gap();
+        let due =
+            (self.last_snapshot + self.cfg.snapshot_every.max(1)).saturating_sub(self.applied);
         let mut trajectories = std::mem::take(&mut self.trajectories);
         let base = self.base.clone();
         let mut since = std::mem::take(&mut self.since);
@@ -1214,7 +1217,9 @@ impl Coordinator {
             let mut out = Applied::default();
             let started = Instant::now();
             while let Some(r) = records.pop_front() {
-                if started.elapsed() >= budget && !out.reports.is_empty() {
+                if !out.reports.is_empty()
+                    && (started.elapsed() >= budget || out.reports.len() as u64 >= due)
+                {
                     records.push_front(r);
                     break;
                 }

@@ -267,11 +267,16 @@ impl LandmarkMap {
 
     /// The current existence log-odds of the landmark in `slot`.
     pub fn existence(&self, slot: usize) -> Option<f64> {
-        let l = self.get(slot)?;
-        Some(match self.pending_at(slot) {
+        self.get(slot).map(|l| self.current_existence(slot, l))
+    }
+
+    /// The current existence log-odds of `l`, the landmark read from `slot`: its held value
+    /// if any ([`LandmarkMap::existence`] without reading the landmark again).
+    pub fn current_existence(&self, slot: usize, l: &Landmark) -> f64 {
+        match self.pending_at(slot) {
             Ok(i) => self.pending[i].1,
             Err(_) => l.existence,
-        })
+        }
     }
 
     /// Sets the existence log-odds of the landmark in `slot` (if present) without writing the
@@ -300,7 +305,7 @@ impl LandmarkMap {
     /// Present landmarks with their slots, in slot order, with their current existence.
     pub fn current(&self) -> impl Iterator<Item = (usize, Landmark)> + '_ {
         self.iter().map(|(s, l)| {
-            let existence = self.existence(s).unwrap_or(l.existence);
+            let existence = self.current_existence(s, l);
             (s, Landmark { existence, ..*l })
         })
     }
@@ -467,7 +472,7 @@ impl Serialize for LandmarkMap {
     fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
         s.collect_seq((0..self.slots).map(|i| {
             self.get(i).map(|l| Landmark {
-                existence: self.existence(i).unwrap_or(l.existence),
+                existence: self.current_existence(i, l),
                 ..*l
             })
         }))

@@ -19,7 +19,7 @@ use serde_json::{Value, json};
 use std::sync::Arc;
 
 mod common;
-use common::{Harness, setup, sim_log, store_with_run};
+use common::{Harness, register_header_robots, setup, sim_log, store_with_run};
 
 /// The EKF, except that it panics on a measurement whose first component is `magic`: a
 /// deterministic poison record, through the coordinator's public `spawn`.
@@ -158,21 +158,7 @@ async fn a_panicking_record_is_quarantined_live_and_the_run_goes_on() {
             }
         }
     });
-    for r in &log.header.robots {
-        handle
-            .add_robot(
-                fleetslam_store::NewRobot {
-                    robot_id: r.id.clone(),
-                    start: r.start.map(|s| serde_json::to_value(s).unwrap()),
-                    token_hash: fleetslam_server::auth::token_hash(&r.id),
-                    t0: r.t0,
-                },
-                r.start,
-                r.t0,
-            )
-            .await
-            .unwrap();
-    }
+    register_header_robots(&handle, &log).await;
     for chunk in posted.chunks(20) {
         let acks = handle.ingest(chunk.to_vec()).await.unwrap();
         assert!(acks.iter().all(|a| a.status == "stored"), "{acks:?}");

@@ -8,13 +8,13 @@ use fleetslam_localize::LateJoinSlam;
 use fleetslam_server::app::{ApiConfig, AppState, app};
 use fleetslam_server::coordinator::{self, CoordinatorConfig};
 use fleetslam_server::history;
-use fleetslam_store::{NewRobot, Store};
+use fleetslam_store::Store;
 use futures::StreamExt;
 use serde_json::{Value, json};
 use std::time::Duration;
 
 mod common;
-use common::{sim_log, store_with_run};
+use common::{register_header_robots, sim_log, store_with_run};
 
 #[tokio::test]
 async fn a_state_published_lazily_equals_the_eager_one_and_is_built_only_when_read() {
@@ -33,22 +33,10 @@ async fn a_state_published_lazily_equals_the_eager_one_and_is_built_only_when_re
     let particle_sample = coord.particle_sample;
     let handle = coordinator::spawn("lazy".into(), filter, store.clone(), coord, None, None);
     for r in &log.header.robots {
-        let start = r.start.unwrap();
-        twin.add_robot(&r.id, &start, r.t0.unwrap_or(0.0)).unwrap();
-        handle
-            .add_robot(
-                NewRobot {
-                    robot_id: r.id.clone(),
-                    start: Some(serde_json::to_value(start).unwrap()),
-                    token_hash: fleetslam_server::auth::token_hash(&r.id),
-                    t0: r.t0,
-                },
-                Some(start),
-                r.t0,
-            )
-            .await
+        twin.add_robot(&r.id, &r.start.unwrap(), r.t0.unwrap_or(0.0))
             .unwrap();
     }
+    register_header_robots(&handle, &log).await;
     // Watches the publications: each is unbuilt until read here. The first whose filter has
     // applied some records but not all is kept.
     let mut state_rx = handle.state.clone();
@@ -236,21 +224,7 @@ async fn snapshots_taken_while_released_records_wait_for_the_filter_cover_only_a
         ..CoordinatorConfig::default()
     };
     let handle = coordinator::spawn("snap".into(), filter, store.clone(), coord, None, None);
-    for r in &log.header.robots {
-        handle
-            .add_robot(
-                NewRobot {
-                    robot_id: r.id.clone(),
-                    start: r.start.map(|s| serde_json::to_value(s).unwrap()),
-                    token_hash: fleetslam_server::auth::token_hash(&r.id),
-                    t0: r.t0,
-                },
-                r.start,
-                r.t0,
-            )
-            .await
-            .unwrap();
-    }
+    register_header_robots(&handle, &log).await;
     // One robot's records first, then the other's: the merge releases them in large sets.
     for r in &log.header.robots {
         let mine: Vec<Record> = log

@@ -276,7 +276,7 @@ fn update_landmarks(
                 s,
                 Landmark {
                     gaussian: out.posterior,
-                    existence: (p.map.existence(s).unwrap_or(old.existence) + a.existence_hit)
+                    existence: (p.map.current_existence(s, &old) + a.existence_hit)
                         .min(a.existence_max),
                     hits: old.hits + 1,
                     ..old
@@ -357,10 +357,11 @@ fn merge_close_landmarks(
                 } else {
                     (s, l, m)
                 };
-            let existence =
-                |slot: usize, l: &Landmark| p.map.existence(slot).unwrap_or(l.existence);
-            let existence =
-                existence(keep, &kept).max(existence(if keep == s { t } else { s }, &gone));
+            let gone_slot = if keep == s { t } else { s };
+            let existence = p
+                .map
+                .current_existence(keep, &kept)
+                .max(p.map.current_existence(gone_slot, &gone));
             p.map.set(
                 keep,
                 Landmark {
@@ -369,7 +370,7 @@ fn merge_close_landmarks(
                     ..kept
                 },
             );
-            p.map.remove(if keep == s { t } else { s });
+            p.map.remove(gone_slot);
             stats.landmarks_merged += 1;
         }
     }

@@ -7,7 +7,8 @@ use fleetslam_core::config::FilterConfig;
 use fleetslam_core::log::Log;
 use fleetslam_data::sim::{SimConfig, simulate};
 use fleetslam_server::app::{ApiConfig, AppState, app};
-use fleetslam_store::{NewRun, Store};
+use fleetslam_server::coordinator::RunHandle;
+use fleetslam_store::{NewRobot, NewRun, Store};
 use serde_json::{Value, json};
 use tower::ServiceExt;
 
@@ -175,4 +176,24 @@ pub async fn store_with_run(
         .await
         .unwrap();
     (store, cfg)
+}
+
+/// Registers the log header's robots (start pose, t0, a token named after the robot) with
+/// a coordinator driven directly.
+pub async fn register_header_robots(handle: &RunHandle, log: &Log) {
+    for r in &log.header.robots {
+        handle
+            .add_robot(
+                NewRobot {
+                    robot_id: r.id.clone(),
+                    start: r.start.map(|s| serde_json::to_value(s).unwrap()),
+                    token_hash: fleetslam_server::auth::token_hash(&r.id),
+                    t0: r.t0,
+                },
+                r.start,
+                r.t0,
+            )
+            .await
+            .unwrap();
+    }
 }

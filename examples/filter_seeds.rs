@@ -6,6 +6,7 @@
 //! cargo run --release --example filter_seeds -- control-noise [--seeds 1-5] \
 //!     [--particles 100] [--duration 60]
 //! cargo run --release --example filter_seeds -- sims [--seeds 1-5] [--particles 100]
+//! cargo run --release --example filter_seeds -- clusters [--seeds 1-5] [--particles 200]
 //! cargo run --release --example filter_seeds -- victoria [--seeds 1] [--particles 100] \
 //!     [--duration S] [--dataset DIR]
 //! cargo run --release --example filter_seeds -- speed [--seeds 1]
@@ -17,7 +18,11 @@
 //! high-control-noise scenario with FastSLAM 1.0 and 2.0 per seed and prints ATE and
 //! landmark NEES. `sims` checks the settings tuned on MRCLAM on simulations they were not
 //! tuned on (other noise, landmark densities, fields of view, motion), FastSLAM 2.0 with and
-//! without deferred pose sampling and 1.0, and prints team ATE per scenario. `victoria` runs
+//! without deferred pose sampling and 1.0, and prints team ATE per scenario. `clusters`
+//! checks the minimum landmark separation that MRCLAM's `--no-ids` header suggests (half the
+//! smallest distance between landmark groups) on simulations without ids whose landmarks
+//! stand in groups of 2-3 features, as MRCLAM's barcodes do, at other group spacings,
+//! sensors and motion, against the filter's default separation. `victoria` runs
 //! Victoria Park (unknown association) and prints the ATE against GPS after SE(2) alignment.
 //! `speed` prints the filter's cost (issue 13): wall time per particle and record and per
 //! particle and landmark observation on a simulated log with 6 or more observations per
@@ -30,7 +35,7 @@ use fleetslam_core::filter::FastSlam;
 use fleetslam_core::log::SensorRange;
 use fleetslam_core::motion::{MotionModel, MotionNoise};
 use fleetslam_core::sensor::SensorNoise;
-use fleetslam_data::evaluate::evaluate;
+use fleetslam_data::evaluate::{EvalOptions, evaluate};
 use fleetslam_data::import::{VictoriaOptions, import_victoria_park};
 use fleetslam_data::run::{TrajectoryEstimate, run_log};
 use fleetslam_data::sim::{SimConfig, simulate};
@@ -42,7 +47,7 @@ use std::time::Instant;
 
 fn usage() -> ! {
     eprintln!(
-        "usage: filter_seeds mrclam|control-noise|sims|victoria|speed [--no-ids] [--seeds A-B|a,b,c] \
+        "usage: filter_seeds mrclam|control-noise|sims|clusters|victoria|speed [--no-ids] [--seeds A-B|a,b,c] \
          [--particles N] [--version 1|2] [--duration S] [--dataset DIR]"
     );
     std::process::exit(2)
@@ -240,6 +245,59 @@ fn main() {
                 println!("{line}");
             }
         }
+        "clusters" => {
+            let seeds = seeds.unwrap_or_else(|| (1..=5).collect());
+            let particles = particles.unwrap_or(200);
+            let duration = duration.unwrap_or(120.0);
+            println!(
+                "clustered landmarks without ids, {particles} particles, {duration} s, seeds \
+                 {seeds:?}; per setting: team ATE mean (worst), groups mapped within 0.3 m \
+                 (fewest), spurious landmarks (most)"
+            );
+            let opts = EvalOptions {
+                group_within: Some(0.3),
+                landmark_match_radius: 0.3,
+                ..EvalOptions::default()
+            };
+            for (name, spacing, make) in cluster_scenarios(duration) {
+                // Group centres stand at least 0.8 grid spacings apart: the suggestion is
+                // half of that, as MRCLAM's header suggests half its groups' 1.8 m.
+                let suggested = 0.4 * spacing;
+                let mut line = format!("{name:<52}");
+                for (label, separation) in [
+                    ("default 0.45 m", None),
+                    ("half the spacing", Some(suggested)),
+                ] {
+                    let (mut ates, mut groups, mut spurious) = (Vec::new(), Vec::new(), Vec::new());
+                    let mut total = 0;
+                    for &seed in &seeds {
+                        let mut sc = make(seed);
+                        sc.landmark_separation = separation;
+                        let sim = simulate(&sc).expect("valid simulation");
+                        let mut cfg = experiment_config(&sim.log.header);
+                        cfg.particles = particles;
+                        cfg.seed = seed;
+                        let mut slam = FastSlam::new(cfg).expect("valid configuration");
+                        let out = run_log(&mut slam, &sim.log, TrajectoryEstimate::Mean, |_, _| {})
+                            .expect("run");
+                        let ev = evaluate(&out.estimate, &sim.truth, true, &opts);
+                        ates.push(ev.team.ate_rmse);
+                        groups.push(ev.team.landmarks_matched);
+                        total = ev.team.landmarks_matched + ev.team.landmarks_missed;
+                        spurious.push(ev.team.landmarks_spurious);
+                    }
+                    line += &format!(
+                        " | {label} ({:.2} m): {:.3} ({:.3}) m, {}/{total}, {}",
+                        separation.unwrap_or(0.45),
+                        mean(&ates),
+                        max(&ates),
+                        groups.iter().min().copied().unwrap_or(0),
+                        spurious.iter().max().copied().unwrap_or(0),
+                    );
+                }
+                println!("{line}");
+            }
+        }
         "victoria" => {
             let seeds = seeds.unwrap_or_else(|| vec![1]);
             let particles = particles.unwrap_or(100);
@@ -342,6 +400,92 @@ fn speed_scenario(seed: u64) -> SimConfig {
         landmarks: 60,
         ..SimConfig::default()
     }
+}
+
+/// Landmarks in groups of 2 or 3 features 0.1-0.13 m from their group's centre (members at
+/// most 0.26 m apart, as MRCLAM's barcodes stand 0.18-0.25 m apart), the centres on a grid
+/// of `spacing` m over the arena, each moved by up to a tenth of the spacing in x and y.
+fn clustered_landmarks(seed: u64, arena: [f64; 2], spacing: f64) -> Vec<[f64; 3]> {
+    use rand::Rng;
+    let mut rng = fleetslam_core::rng::stream(seed, 0, 0x6C75_7374);
+    let mut out = Vec::new();
+    let (nx, ny) = (
+        (arena[0] / spacing).floor() as usize,
+        (arena[1] / spacing).floor() as usize,
+    );
+    for i in 0..nx {
+        for j in 0..ny {
+            let cx = (i as f64 + 0.5) * spacing + rng.random_range(-0.1..0.1) * spacing;
+            let cy = (j as f64 + 0.5) * spacing + rng.random_range(-0.1..0.1) * spacing;
+            let members = rng.random_range(2..=3);
+            let a0 = rng.random_range(0.0..std::f64::consts::TAU);
+            for k in 0..members {
+                let a = a0 + std::f64::consts::TAU * k as f64 / members as f64;
+                let r = rng.random_range(0.1..0.13);
+                out.push([cx + r * a.cos(), cy + r * a.sin(), 0.0]);
+            }
+        }
+    }
+    out
+}
+
+/// The `clusters` scenarios: name, group spacing, simulation per seed (no ids).
+#[allow(clippy::type_complexity)]
+fn cluster_scenarios(duration: f64) -> Vec<(&'static str, f64, Box<dyn Fn(u64) -> SimConfig>)> {
+    let base = move |seed, spacing| {
+        let d = SimConfig::default();
+        SimConfig {
+            seed,
+            duration,
+            with_ids: false,
+            landmark_positions: Some(clustered_landmarks(seed, d.arena, spacing)),
+            ..d
+        }
+    };
+    vec![
+        (
+            "3 robots, 6 m 180 deg, groups 2.25 m apart",
+            2.25,
+            Box::new(move |seed| base(seed, 2.25)),
+        ),
+        (
+            "5 robots, odometry, 4 m 60 deg, groups 3 m apart",
+            3.0,
+            Box::new(move |seed| SimConfig {
+                robots: 5,
+                motion_model: MotionModel::Odometry,
+                sensor_range: SensorRange {
+                    max_range: 4.0,
+                    fov: 60f64.to_radians(),
+                },
+                ..base(seed, 3.0)
+            }),
+        ),
+        (
+            "3 robots, motion noise x2, bearing 0.05 rad, 1.5 m",
+            1.5,
+            Box::new(move |seed| {
+                let d = SimConfig::default();
+                let n = d.true_motion_noise;
+                SimConfig {
+                    true_motion_noise: MotionNoise {
+                        trans_per_m: 2.0 * n.trans_per_m,
+                        lateral_per_m: 2.0 * n.lateral_per_m,
+                        rot_per_rad: 2.0 * n.rot_per_rad,
+                        rot_per_m: 2.0 * n.rot_per_m,
+                        trans_per_sqrt_s: 2.0 * n.trans_per_sqrt_s,
+                        rot_per_sqrt_s: 2.0 * n.rot_per_sqrt_s,
+                        ..n
+                    },
+                    true_sensor_noise: SensorNoise {
+                        bearing: 0.05,
+                        ..d.true_sensor_noise
+                    },
+                    ..base(seed, 1.5)
+                }
+            }),
+        ),
+    ]
 }
 
 /// Simulated scenarios none of the filter's settings were tuned on.

@@ -3,6 +3,7 @@
 use crate::log::{LogHeader, SensorRange};
 use crate::motion::{AckermannParams, MotionModel, MotionNoise};
 use crate::sensor::{LandmarkKind, SensorNoise};
+pub(crate) use crate::stats::LN_2PI;
 use serde::{Deserialize, Serialize};
 
 /// FastSLAM 1.0 (pose sampled from the motion model) or 2.0 (pose sampled from a proposal
@@ -187,7 +188,10 @@ pub struct AssociationParams {
     /// landmark per member. Measured on MRCLAM Dataset 6 without ids (first 300 s, 200
     /// particles, bearing noise 0.03 rad, odometry delay 0.1 s, seeds 1-3): 0 left 9-10
     /// spurious landmarks, 0.3 left 4-7 and 0.45 left 1-4 (with 0.04 rad, 0.15 s and 0.45:
-    /// 0-1 over seeds 1-4). 0 lets the Mahalanobis thresholds alone decide.
+    /// 0-1 over seeds 1-4). 0 lets the Mahalanobis thresholds alone decide. A log header's
+    /// `landmark_separation` replaces the default ([`FilterConfig::from_header`]):
+    /// MRCLAM's `--no-ids` import suggests 0.9 m, half the distance between its groups,
+    /// which also stops a drifted robot from mapping shifted copies of them.
     pub min_separation: f64,
 }
 
@@ -241,9 +245,6 @@ impl AssociationParams {
 /// buffers, loops over the record's observations) is paid a few times per step, not once per
 /// `batch_size` particles. Results do not depend on it (every draw is keyed by particle).
 pub const WORK_ITEMS_PER_THREAD: usize = 4;
-
-/// ln(2π).
-pub(crate) const LN_2PI: f64 = 1.837_877_066_409_345_3;
 
 /// The name of the built-in EKF updater in [`FilterConfig::updater`].
 pub const EKF_UPDATER: &str = "ekf";
@@ -394,6 +395,12 @@ impl FilterConfig {
                 Association::Unknown
             },
             sensor_range: h.sensor_range,
+            association_params: AssociationParams {
+                min_separation: h
+                    .landmark_separation
+                    .unwrap_or(d.association_params.min_separation),
+                ..d.association_params
+            },
             ..d
         }
     }

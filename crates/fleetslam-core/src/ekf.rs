@@ -23,7 +23,7 @@ use crate::sensor::{
 use crate::updater::{LandmarkGaussian, LandmarkUpdater, UpdateInput, UpdateOutput};
 use nalgebra::{Matrix2, Matrix3, Vector2, Vector3};
 
-const LN_2PI: f64 = 1.837_877_066_409_345_3;
+use crate::stats::LN_2PI;
 
 /// The EKF updater.
 #[derive(Debug, Clone)]

@@ -46,6 +46,14 @@ pub struct LogHeader {
     /// The sensor's field of view, used to decide which landmarks should have been seen.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sensor_range: Option<SensorRange>,
+    /// Suggested smallest distance between two distinct landmarks of the environment (m,
+    /// in the ground plane), for unknown association
+    /// (`association_params.min_separation`): features closer than this count as one
+    /// landmark, and an observation that matches no landmark but lies this close to one
+    /// starts none. A property of the place the robots map (how densely its landmarks
+    /// stand), which its integrator knows.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub landmark_separation: Option<f64>,
     /// Whether observations carry landmark ids.
     #[serde(default = "default_true")]
     pub landmark_ids: bool,
@@ -280,6 +288,7 @@ mod tests {
                 sensor_noise: None,
                 sighting_noise: None,
                 sensor_range: None,
+                landmark_separation: None,
                 landmark_ids: true,
                 truth_frame: true,
                 robots: vec![RobotStart {

@@ -2,6 +2,10 @@
 //! association gates (a squared Mahalanobis distance of a `d`-dimensional Gaussian innovation
 //! is χ² with `d` degrees of freedom), and `ln(eˣ + eʸ)` without overflow.
 
+/// ln(2π), of every Gaussian log-density in the workspace (the EKF's and the learned
+/// updater's likelihoods, the filter's proposal and association, the localizer's weights).
+pub const LN_2PI: f64 = 1.837_877_066_409_345_3;
+
 /// `ln Γ(a)` for `a = k / 2`, `k >= 1` (exact recursion from Γ(1) = 1 and Γ(½) = √π).
 fn ln_gamma_half(k: u32) -> f64 {
     let mut a = if k.is_multiple_of(2) { 1.0 } else { 0.5 };

@@ -151,6 +151,10 @@ pub struct SimConfig {
     /// `(d·dx, d·dy, r·dθ)` of each commanded increment (worn wheels, a track width off its
     /// nominal value), before the noise; the log keeps the commands. Default `[1, 1]`.
     pub odometry_scale: [f64; 2],
+    /// The smallest distance between distinct landmarks that the log's header suggests to
+    /// the filter (`LogHeader::landmark_separation`; unknown association). Default none
+    /// (the filter's default).
+    pub landmark_separation: Option<f64>,
 }
 
 impl Default for SimConfig {
@@ -177,6 +181,7 @@ impl Default for SimConfig {
             landmark_positions: None,
             landmark_height: [0.2, 2.0],
             odometry_scale: [1.0, 1.0],
+            landmark_separation: None,
         }
     }
 }
@@ -320,6 +325,11 @@ impl SimConfig {
                 )
             },
         )?;
+        if let Some(s) = self.landmark_separation {
+            check(s.is_finite() && s >= 0.0, || {
+                format!("landmark_separation must be a finite distance >= 0 (m), got {s}")
+            })?;
+        }
         let n = &self.true_sensor_noise;
         for (name, v) in [
             ("range", n.range),
@@ -691,6 +701,7 @@ pub fn simulate(cfg: &SimConfig) -> Result<Simulated, SimError> {
         sensor_noise: Some(sensor_noise),
         sighting_noise: (cfg.sighting_range > 0.0).then_some(sensor_noise),
         sensor_range: Some(cfg.sensor_range),
+        landmark_separation: cfg.landmark_separation,
         landmark_ids: cfg.with_ids,
         truth_frame: true,
         robots: runs

@@ -25,7 +25,7 @@ use fleetslam_core::updater::{LandmarkGaussian, UpdateInput};
 use nalgebra::{SMatrix, SVector};
 use serde::{Deserialize, Serialize};
 
-const LN_2PI: f64 = 1.837_877_066_409_345_3;
+use fleetslam_core::stats::LN_2PI;
 
 /// How a model's inputs and outputs are laid out. A model trained for one layout can't be run
 /// with another: the updater refuses it.

@@ -26,7 +26,7 @@ use fleetslam_core::updater::LandmarkGaussian;
 use nalgebra::{Matrix2, Matrix3, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
-const LN_2PI: f64 = 1.837_877_066_409_345_3;
+use fleetslam_core::stats::LN_2PI;
 
 /// One landmark of a fixed map.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

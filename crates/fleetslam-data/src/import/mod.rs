@@ -31,7 +31,9 @@
 pub mod mrclam;
 pub mod victoria;
 
-pub use mrclam::{MrclamOptions, SUGGESTED_ODOMETRY_DELAY, import_mrclam};
+pub use mrclam::{
+    MrclamOptions, NO_IDS_LANDMARK_SEPARATION, SUGGESTED_ODOMETRY_DELAY, import_mrclam,
+};
 pub use victoria::{VictoriaOptions, import_victoria_park};
 
 use crate::formats::Truth;

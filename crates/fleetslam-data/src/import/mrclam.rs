@@ -167,6 +167,18 @@ pub fn suggested_sensor_noise() -> SensorNoise {
     }
 }
 
+/// The smallest distance between distinct landmarks that a `--no-ids` header suggests (m):
+/// half the smallest distance between the centres of the 6 barcode groups (1.8 m in
+/// `Landmark_Groundtruth.dat`; a group's members stand 0.18-0.25 m apart and count as one
+/// landmark without ids), so that an observation that matches no landmark but lies closer
+/// to one than halfway to the next group starts no landmark. With the filter's default
+/// (0.45 m) a robot whose pose had drifted 0.5-1 m mapped a second, shifted copy of the
+/// groups it saw and went on in that copy's frame: on the full run (1,000 particles,
+/// seeds 1-10) team ATE mean 0.376 m (worst seed 0.524 m) with 3-6 of the 6 groups mapped
+/// within 0.3 m and 1-5 spurious landmarks, against 0.263 m (0.317 m), 3-6 of 6 and 0-3
+/// with 0.9 m (`cargo run --release --example filter_seeds -- mrclam --no-ids`).
+pub const NO_IDS_LANDMARK_SEPARATION: f64 = 0.9;
+
 /// One robot's files, parsed and sorted by time.
 struct RobotFiles {
     id: String,
@@ -555,6 +567,7 @@ pub fn import_mrclam(dir: &Path, opts: &MrclamOptions) -> Result<Imported, Impor
         sensor_noise: Some(suggested_sensor_noise()),
         sighting_noise: Some(suggested_sensor_noise()),
         sensor_range,
+        landmark_separation: opts.no_ids.then_some(NO_IDS_LANDMARK_SEPARATION),
         landmark_ids: !opts.no_ids,
         truth_frame: true,
         robots: header_robots,
@@ -749,6 +762,31 @@ mod tests {
         }
         assert!(imp.report.robot_sightings > 0);
         assert!(imp.report.detections_dropped["sighting of a robot not imported"] > 0);
+        // The header suggests the groups' separation, which the filter takes; with ids the
+        // filter keeps its default.
+        let h = &imp.log.header;
+        assert_eq!(h.landmark_separation, Some(NO_IDS_LANDMARK_SEPARATION));
+        let cfg = fleetslam_core::config::FilterConfig::from_header(h);
+        assert_eq!(
+            cfg.association_params.min_separation,
+            NO_IDS_LANDMARK_SEPARATION
+        );
+        let with_ids = import_mrclam(
+            dir,
+            &MrclamOptions {
+                no_ids: false,
+                ..opts
+            },
+        )
+        .unwrap();
+        assert_eq!(with_ids.log.header.landmark_separation, None);
+        let default = fleetslam_core::config::AssociationParams::default();
+        assert_eq!(
+            fleetslam_core::config::FilterConfig::from_header(&with_ids.log.header)
+                .association_params
+                .min_separation,
+            default.min_separation
+        );
     }
 
     #[test]

@@ -350,6 +350,7 @@ pub fn import_victoria_park(dir: &Path, opts: &VictoriaOptions) -> Result<Import
         odometry_calibration: None,
         sensor_noise: Some(suggested_sensor_noise()),
         sighting_noise: None,
+        landmark_separation: None,
         sensor_range: Some(sensor_range),
         landmark_ids: false,
         truth_frame: false,

@@ -50,6 +50,15 @@
 //! covariance otherwise (expected value 3); rows whose covariance is not positive definite
 //! (e.g. unknown, all zero) are skipped.
 //!
+//! A map can be right in shape and off as a whole: a SLAM estimate's frame is tied to the
+//! truth's only through the robots' start poses, and an error of the frame moves every
+//! landmark alike. `landmark_rmse_map_fit` and `landmark_nees_map_fit` give the RMSE and
+//! NEES after the matched landmarks' own least-squares SE(2) fit onto the truth (the fit
+//! above over landmark positions instead of poses, at least 3 pairs; covariances turned
+//! with it): the map's shape. A FastSLAM's landmark covariances are conditioned on its
+//! particles' trajectories, which after resampling share one ancestor, so they leave the
+//! frame's error out: its NEES is large where the map-fit NEES is not.
+//!
 //! Beside this capped matching, `landmark_rmse_optimal` matches every estimate landmark
 //! with a truth landmark one to one (as many pairs as the smaller side has) minimising the
 //! sum of squared distances (Hungarian / Kuhn-Munkres, no radius, ids ignored): a map with
@@ -223,6 +232,15 @@ pub struct TeamEval {
     pub landmark_nees: Option<f64>,
     /// Landmarks the NEES averages over.
     pub landmark_nees_count: usize,
+    /// Landmark RMSE (m) after the matched landmarks' own least-squares SE(2) fit onto the
+    /// truth (module docs): the error of the map's shape, without the error of its frame
+    /// that every landmark shares. `None` below 3 matched landmarks.
+    #[serde(default)]
+    pub landmark_rmse_map_fit: Option<f64>,
+    /// Mean landmark NEES after that fit (covariances turned with the map); `None` below 3
+    /// matched landmarks or without a positive definite covariance.
+    #[serde(default)]
+    pub landmark_nees_map_fit: Option<f64>,
     /// Largest distance of a landmark pair matched within the radius (m).
     #[serde(default)]
     pub landmark_match_max: Option<f64>,
@@ -551,6 +569,51 @@ fn nees(est: &LandmarkRow, truth: &LandmarkRow) -> Option<f64> {
     value.is_finite().then_some(value)
 }
 
+/// Landmark RMSE and mean NEES of the matched `pairs` after the estimate landmarks'
+/// least-squares SE(2) fit onto their truth landmarks (module docs); `None`s below
+/// [`MAP_FIT_MIN_PAIRS`] pairs.
+fn map_fit_errors(
+    est: &[LandmarkRow],
+    truth: &[LandmarkRow],
+    pairs: &[(usize, usize)],
+) -> (Option<f64>, Option<f64>) {
+    if pairs.len() < MAP_FIT_MIN_PAIRS {
+        return (None, None);
+    }
+    let points: Vec<(Pose2, Pose2)> = pairs
+        .iter()
+        .map(|&(i, j)| {
+            let (e, g) = (&est[i].mean, &truth[j].mean);
+            (Pose2::new(e[0], e[1], 0.0), Pose2::new(g[0], g[1], 0.0))
+        })
+        .collect();
+    let Some(fit) = fit_se2(&points) else {
+        return (None, None);
+    };
+    let moved: Vec<LandmarkRow> = pairs
+        .iter()
+        .map(|&(i, _)| fit.apply_landmark(&est[i]))
+        .collect();
+    let sq: f64 = moved
+        .iter()
+        .zip(pairs)
+        .map(|(m, &(_, j))| landmark_distance(m, &truth[j]).powi(2))
+        .sum();
+    let rmse = (sq / pairs.len() as f64).sqrt();
+    let nees_values: Vec<f64> = moved
+        .iter()
+        .zip(pairs)
+        .filter_map(|(m, &(_, j))| nees(m, &truth[j]))
+        .collect();
+    let mean_nees = (!nees_values.is_empty())
+        .then(|| nees_values.iter().sum::<f64>() / nees_values.len() as f64);
+    (Some(rmse), mean_nees)
+}
+
+/// Matched landmarks a map fit needs (fewer determine the fit's three parameters too
+/// closely for the residual to mean anything).
+pub const MAP_FIT_MIN_PAIRS: usize = 3;
+
 fn landmark_distance(a: &LandmarkRow, b: &LandmarkRow) -> f64 {
     let d: f64 = (0..3).map(|i| (a.mean[i] - b.mean[i]).powi(2)).sum();
     d.sqrt()
@@ -841,6 +904,8 @@ pub fn evaluate(
         .collect();
     let landmark_nees = (!nees_values.is_empty())
         .then(|| nees_values.iter().sum::<f64>() / nees_values.len() as f64);
+    let (landmark_rmse_map_fit, landmark_nees_map_fit) =
+        map_fit_errors(&est_landmarks, &truth_landmarks, &pairs);
 
     Evaluation {
         robots,
@@ -856,6 +921,8 @@ pub fn evaluate(
             landmarks_spurious: est_landmarks.len() - pairs.len(),
             landmark_nees,
             landmark_nees_count: nees_values.len(),
+            landmark_rmse_map_fit,
+            landmark_nees_map_fit,
             landmark_match_max,
             landmark_rmse_optimal,
             landmarks_optimal_pairs: optimal.len(),
@@ -971,6 +1038,12 @@ impl fmt::Display for Evaluation {
         }
         if let Some(nees) = t.landmark_nees {
             write!(f, ", NEES {} over {}", Num(nees, 2), t.landmark_nees_count)?;
+        }
+        if let Some(r) = t.landmark_rmse_map_fit {
+            write!(f, "; after the map's own SE(2) fit rmse {} m", Num(r, 3))?;
+            if let Some(nees) = t.landmark_nees_map_fit {
+                write!(f, ", NEES {}", Num(nees, 2))?;
+            }
         }
         if let Some(o) = t.landmark_rmse_optimal {
             write!(
@@ -1372,6 +1445,57 @@ mod tests {
             ev.team.rpe_rmse
         );
         assert!((ev.robots["1"].rpe_rmse - 0.1).abs() < 1e-12);
+    }
+
+    #[test]
+    fn map_fit_removes_the_frame_error_and_keeps_the_shape_error() {
+        let square = [(0.0, 0.0), (4.0, 0.0), (0.0, 4.0), (4.0, 4.0)];
+        let truth = Truth {
+            landmarks: (0..4u32)
+                .map(|k| row(Some(k), square[k as usize].0, square[k as usize].1))
+                .collect(),
+            ..Truth::default()
+        };
+        // The right shape in a frame turned by 0.05 rad and moved by (0.3, -0.2).
+        let frame = Se2 {
+            tx: 0.3,
+            ty: -0.2,
+            phi: 0.05,
+        };
+        let mut est = truth.clone();
+        for l in &mut est.landmarks {
+            l.cov = [0.01, 0.0, 0.0, 0.01, 0.0, 0.0];
+            *l = frame.apply_landmark(l);
+        }
+        let t = evaluate(&est, &truth, true, &EvalOptions::default()).team;
+        // Before the fit every landmark is off by its move: NEES |d|² / 0.01.
+        let moved: f64 = square
+            .iter()
+            .map(|&(x, y)| {
+                let (mx, my) = frame.apply_xy(x, y);
+                ((mx - x).powi(2) + (my - y).powi(2)) / 0.01
+            })
+            .sum();
+        assert!((t.landmark_nees.unwrap() - moved / 4.0).abs() < 1e-9);
+        assert!(moved / 4.0 > 6.0);
+        assert!(t.landmark_rmse_map_fit.unwrap() < 1e-9);
+        assert!(t.landmark_nees_map_fit.unwrap() < 1e-9);
+        // The shape 10 % too large about its centre: the fit is the identity and each
+        // landmark is 0.1 * 2√2 m off, NEES 0.08 / 0.01 = 8.
+        let mut est = truth.clone();
+        for l in &mut est.landmarks {
+            l.mean[0] = 2.0 + 1.1 * (l.mean[0] - 2.0);
+            l.mean[1] = 2.0 + 1.1 * (l.mean[1] - 2.0);
+            l.cov = [0.01, 0.0, 0.0, 0.01, 0.0, 0.0];
+        }
+        let t = evaluate(&est, &truth, true, &EvalOptions::default()).team;
+        assert!((t.landmark_rmse_map_fit.unwrap() - 0.2 * 2f64.sqrt()).abs() < 1e-9);
+        assert!((t.landmark_nees_map_fit.unwrap() - 8.0).abs() < 1e-9);
+        // Below three matched landmarks there is no fit.
+        est.landmarks.truncate(2);
+        let t = evaluate(&est, &truth, true, &EvalOptions::default()).team;
+        assert_eq!(t.landmarks_matched, 2);
+        assert!(t.landmark_rmse_map_fit.is_none() && t.landmark_nees_map_fit.is_none());
     }
 
     #[test]

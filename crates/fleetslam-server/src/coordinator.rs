@@ -715,9 +715,12 @@ impl Coordinator {
                 self.settle().await;
             }
             if ended {
-                // Everything the merger holds, in order.
+                // Everything the merger holds, in order, with the snapshots that fall due on
+                // the way (a run ended while a backlog was left still stores one every
+                // `snapshot_every` records).
                 while self.failed.is_none() && self.start_apply(true) {
                     self.settle().await;
+                    self.snapshot_if_due();
                 }
             }
             if let Some(reason) = &self.failed {
@@ -766,11 +769,20 @@ impl Coordinator {
         if self.stepping.is_some() || self.filter.is_none() || self.failed.is_some() {
             return;
         }
-        if self.applied >= self.last_snapshot + self.cfg.snapshot_every.max(1) {
-            self.snapshot(None);
-        }
+        self.snapshot_if_due();
         self.publish(false);
         self.start_apply(false);
+    }
+
+    /// Queues a snapshot when `snapshot_every` records have been applied since the last
+    /// one (the filter must be home).
+    fn snapshot_if_due(&mut self) {
+        if self.filter.is_some()
+            && self.failed.is_none()
+            && self.applied >= self.last_snapshot + self.cfg.snapshot_every.max(1)
+        {
+            self.snapshot(None);
+        }
     }
 
     /// Queues a snapshot of the current filter; `reply` hears when it is stored.

@@ -104,6 +104,46 @@ fn trajectories_of(out: &fleetslam_data::run::RunOutput) -> Value {
         .into()
 }
 
+/// A run ended with records the filter has not applied yet (here all of them: the merger
+/// holds them for a robot that never posts, within a long reorder window) still stores a
+/// snapshot every `snapshot_every` records while its end works the backlog off.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn ending_with_a_backlog_keeps_the_snapshot_spacing() {
+    let log = sim_log(3, 21.0);
+    let mut cfg = config(40);
+    cfg.coordinator.reorder_window = std::time::Duration::from_secs(600);
+    let h = harness(cfg).await;
+    let (run, tokens) = setup(&h, &log, json!({"particles": 20, "seed": 3})).await;
+    // Robots 1 and 2 post everything; robot 3 nothing, so nothing is safe to apply.
+    let silent = &tokens[2].0;
+    let posted: Vec<_> = log
+        .records
+        .iter()
+        .filter(|r| &r.robot != silent)
+        .cloned()
+        .collect();
+    post(&h, &run, &tokens[..2], &posted).await;
+    let (s, _) = h
+        .json("POST", &format!("/v1/runs/{run}/end"), None, json!({}))
+        .await;
+    assert_eq!(s, StatusCode::NO_CONTENT);
+    let (s, tl) = h.get(&format!("/v1/runs/{run}/timeline")).await;
+    assert_eq!(s, StatusCode::OK, "{tl}");
+    let applied: Vec<u64> = tl["snapshots"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["applied"].as_u64().unwrap())
+        .collect();
+    let n = posted.len() as u64;
+    let mut expected: Vec<u64> = (1..=n / 40).map(|k| 40 * k).collect();
+    if !n.is_multiple_of(40) {
+        expected.push(n);
+    }
+    assert!(n > 120, "{n} records");
+    assert_eq!(applied, expected, "{tl}");
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn scrub_export_truth_rerun_and_delete() {
     let log = sim_log(3, 20.0);

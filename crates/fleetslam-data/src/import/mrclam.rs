@@ -554,6 +554,13 @@ pub fn import_mrclam(dir: &Path, opts: &MrclamOptions) -> Result<Imported, Impor
             opts.odometry_delay
         ));
     }
+    if opts.no_ids {
+        report.notes.push(format!(
+            "no ids: the header suggests a landmark separation of {NO_IDS_LANDMARK_SEPARATION} m \
+             (half the smallest distance between the barcode groups; features closer count \
+             as one landmark)"
+        ));
+    }
     report.finish(&records);
 
     let header = LogHeader {
@@ -766,6 +773,14 @@ mod tests {
         // filter keeps its default.
         let h = &imp.log.header;
         assert_eq!(h.landmark_separation, Some(NO_IDS_LANDMARK_SEPARATION));
+        assert!(
+            imp.report
+                .notes
+                .iter()
+                .any(|n| n.contains("landmark separation of 0.9 m")),
+            "{:?}",
+            imp.report.notes
+        );
         let cfg = fleetslam_core::config::FilterConfig::from_header(h);
         assert_eq!(
             cfg.association_params.min_separation,

@@ -38,11 +38,12 @@ use fleetslam_core::log::SensorRange;
 use fleetslam_core::motion::{MotionModel, MotionNoise};
 use fleetslam_core::sensor::SensorNoise;
 use fleetslam_data::evaluate::{EvalOptions, evaluate};
+use fleetslam_data::formats::Truth;
 use fleetslam_data::import::{VictoriaOptions, import_victoria_park};
 use fleetslam_data::run::{TrajectoryEstimate, run_log};
 use fleetslam_data::sim::{SimConfig, simulate};
 use fleetslam_suite::experiments::{
-    control_noise, experiment_config, mrclam, mrclam_eval_options, run_and_evaluate,
+    control_noise, experiment_config, mrclam, mrclam_eval_options, run, run_and_evaluate,
 };
 use std::path::PathBuf;
 use std::time::Instant;
@@ -127,8 +128,9 @@ fn main() {
             let (mut ates, mut rpes, mut lms) = (Vec::new(), Vec::new(), Vec::new());
             for &seed in &seeds {
                 let t = Instant::now();
-                let (ev, m, est) =
-                    run_and_evaluate(&imp.log, &imp.truth, particles, seed, version, &opts);
+                let out = run(&imp.log, particles, seed, version);
+                let ev = evaluate(&out.estimate, &imp.truth, out.metrics.shared_frame, &opts);
+                let (m, est) = (&out.metrics, &out.final_estimate);
                 let tm = &ev.team;
                 println!(
                     "seed {seed:>2}: team ATE {:.3} m, RPE {:.3} m / {:.2} deg, landmarks \
@@ -165,7 +167,7 @@ fn main() {
                     );
                 }
                 if let Some(w) = windows {
-                    drift_windows(&imp.log, &imp.truth, particles, seed, version, w);
+                    drift_windows(&out.estimate, &imp.truth, w);
                 }
                 ates.push(tm.ate_rmse);
                 rpes.push(tm.rpe_rmse);
@@ -406,68 +408,51 @@ fn main() {
     }
 }
 
-/// Prints the team's error per window of `w` seconds of a run: unaligned, after the
-/// window's own least-squares SE(2) fit onto the truth, and that fit (its rotation and
-/// translation). An error that the fit removes is a drift of the whole team's frame; one it
-/// leaves is the robots' own. (Runs the filter again: the same seed gives the same run.)
-fn drift_windows(
-    log: &fleetslam_core::log::Log,
-    truth: &fleetslam_data::formats::Truth,
-    particles: usize,
-    seed: u64,
-    version: FastSlamVersion,
-    w: f64,
-) {
-    let mut cfg = experiment_config(&log.header);
-    cfg.particles = particles;
-    cfg.seed = seed;
-    cfg.version = version;
-    let mut slam = FastSlam::new(cfg).expect("valid configuration");
-    let out = run_log(&mut slam, log, TrajectoryEstimate::Mean, |_, _| {}).expect("run");
-    let t0 = out
-        .estimate
-        .trajectories
-        .values()
-        .filter_map(|v| v.first().map(|p| p.t))
-        .fold(f64::INFINITY, f64::min);
-    let last = out
-        .estimate
-        .trajectories
-        .values()
-        .filter_map(|v| v.last().map(|p| p.t))
-        .fold(f64::NEG_INFINITY, f64::max);
+/// Prints the team's error per window of `w` seconds of a run's `estimate`: unaligned,
+/// after the window's own least-squares SE(2) fit onto the truth, and that fit (its
+/// rotation and translation). An error that the fit removes is a drift of the whole team's
+/// frame; one it leaves is the robots' own.
+fn drift_windows(estimate: &Truth, truth: &Truth, w: f64) {
+    let times = || estimate.trajectories.values().flatten().map(|p| p.t);
+    let t0 = times().fold(f64::INFINITY, f64::min);
+    let last = times().fold(f64::NEG_INFINITY, f64::max);
     println!(
         "         window (s)  team ATE (m)  after the window's fit (m)  fit rotation (deg), translation (m)"
     );
+    let fit_opts = EvalOptions {
+        alignment: Some(fleetslam_data::evaluate::Alignment::Se2),
+        ..Default::default()
+    };
     let mut start = t0;
     while start < last {
-        let mut part = out.estimate.clone();
-        part.landmarks.clear();
-        for v in part.trajectories.values_mut() {
-            v.retain(|p| p.t >= start && p.t < start + w);
-        }
-        let raw = evaluate(&part, truth, true, &Default::default());
-        if raw.team.matched_poses == 0 {
-            start += w;
-            continue;
-        }
-        let fit_opts = EvalOptions {
-            alignment: Some(fleetslam_data::evaluate::Alignment::Se2),
-            ..Default::default()
+        let end = start + w;
+        let part = Truth {
+            trajectories: estimate
+                .trajectories
+                .iter()
+                .map(|(robot, points)| {
+                    let inside = points.iter().filter(|p| p.t >= start && p.t < end);
+                    (robot.clone(), inside.cloned().collect())
+                })
+                .collect(),
+            landmarks: Vec::new(),
         };
-        let fit = evaluate(&part, truth, true, &fit_opts);
-        let [tx, ty, phi] = fit.transform.unwrap_or([f64::NAN; 3]);
-        println!(
-            "         {:>4.0}-{:<4.0}      {:>6.3}        {:>6.3}                      {:>6.1}, ({:.2}, {:.2})",
-            start - t0,
-            start - t0 + w,
-            raw.team.ate_rmse,
-            fit.team.ate_rmse,
-            phi.to_degrees(),
-            tx,
-            ty
-        );
-        start += w;
+        let raw = evaluate(&part, truth, true, &Default::default());
+        if raw.team.matched_poses > 0 {
+            let fit = evaluate(&part, truth, true, &fit_opts);
+            let [tx, ty, phi] = fit.transform.unwrap_or([f64::NAN; 3]);
+            println!(
+                "         {:>4.0}-{:<4.0}      {:>6.3}        {:>6.3}                      {:>6.1}, ({:.2}, {:.2})",
+                start - t0,
+                end - t0,
+                raw.team.ate_rmse,
+                fit.team.ate_rmse,
+                phi.to_degrees(),
+                tx,
+                ty
+            );
+        }
+        start = end;
     }
 }
 
@@ -546,17 +531,8 @@ fn cluster_scenarios(duration: f64) -> Vec<(&'static str, f64, Box<dyn Fn(u64) -
             1.5,
             Box::new(move |seed| {
                 let d = SimConfig::default();
-                let n = d.true_motion_noise;
                 SimConfig {
-                    true_motion_noise: MotionNoise {
-                        trans_per_m: 2.0 * n.trans_per_m,
-                        lateral_per_m: 2.0 * n.lateral_per_m,
-                        rot_per_rad: 2.0 * n.rot_per_rad,
-                        rot_per_m: 2.0 * n.rot_per_m,
-                        trans_per_sqrt_s: 2.0 * n.trans_per_sqrt_s,
-                        rot_per_sqrt_s: 2.0 * n.rot_per_sqrt_s,
-                        ..n
-                    },
+                    true_motion_noise: scaled_noise(&d.true_motion_noise, 2.0),
                     true_sensor_noise: SensorNoise {
                         bearing: 0.05,
                         ..d.true_sensor_noise
@@ -566,6 +542,19 @@ fn cluster_scenarios(duration: f64) -> Vec<(&'static str, f64, Box<dyn Fn(u64) -
             }),
         ),
     ]
+}
+
+/// `n` with every standard deviation times `k` (the random walk's time cap kept).
+fn scaled_noise(n: &MotionNoise, k: f64) -> MotionNoise {
+    MotionNoise {
+        trans_per_m: k * n.trans_per_m,
+        lateral_per_m: k * n.lateral_per_m,
+        rot_per_rad: k * n.rot_per_rad,
+        rot_per_m: k * n.rot_per_m,
+        trans_per_sqrt_s: k * n.trans_per_sqrt_s,
+        rot_per_sqrt_s: k * n.rot_per_sqrt_s,
+        ..*n
+    }
 }
 
 /// Simulated scenarios none of the filter's settings were tuned on.
@@ -594,21 +583,10 @@ fn scenarios() -> Vec<(&'static str, Box<dyn Fn(u64) -> SimConfig>)> {
         ),
         (
             "dense, noisy motion x3: 60 landmarks",
-            Box::new(move |seed| {
-                let d = SimConfig::default().true_motion_noise;
-                SimConfig {
-                    landmarks: 60,
-                    true_motion_noise: MotionNoise {
-                        trans_per_m: 3.0 * d.trans_per_m,
-                        lateral_per_m: 3.0 * d.lateral_per_m,
-                        rot_per_rad: 3.0 * d.rot_per_rad,
-                        rot_per_m: 3.0 * d.rot_per_m,
-                        trans_per_sqrt_s: 3.0 * d.trans_per_sqrt_s,
-                        rot_per_sqrt_s: 3.0 * d.rot_per_sqrt_s,
-                        ..d
-                    },
-                    ..base(seed)
-                }
+            Box::new(move |seed| SimConfig {
+                landmarks: 60,
+                true_motion_noise: scaled_noise(&SimConfig::default().true_motion_noise, 3.0),
+                ..base(seed)
             }),
         ),
         (

@@ -60,7 +60,7 @@ pub mod experiments {
     use fleetslam_data::evaluate::{EvalOptions, Evaluation, evaluate};
     use fleetslam_data::formats::Truth;
     use fleetslam_data::import::{Imported, MrclamOptions, import_mrclam};
-    use fleetslam_data::run::{RunMetrics, TrajectoryEstimate, run_log};
+    use fleetslam_data::run::{RunMetrics, RunOutput, TrajectoryEstimate, run_log};
     use fleetslam_data::sim::{SimConfig, simulate};
     use std::path::Path;
 
@@ -118,8 +118,17 @@ pub mod experiments {
     }
 
     /// Runs the log through a filter of the header's configuration with `particles`,
-    /// `seed` and `version`, and evaluates the result; also returns the filter's final
-    /// estimate.
+    /// `seed` and `version` (trajectories as the particles' weighted mean).
+    pub fn run(log: &Log, particles: usize, seed: u64, version: FastSlamVersion) -> RunOutput {
+        let mut cfg = experiment_config(&log.header);
+        cfg.particles = particles;
+        cfg.seed = seed;
+        cfg.version = version;
+        let mut slam = FastSlam::new(cfg).expect("valid configuration");
+        run_log(&mut slam, log, TrajectoryEstimate::Mean, |_, _| {}).expect("run")
+    }
+
+    /// [`run`], and the result evaluated; also returns the filter's final estimate.
     pub fn run_and_evaluate(
         log: &Log,
         truth: &Truth,
@@ -128,12 +137,7 @@ pub mod experiments {
         version: FastSlamVersion,
         opts: &EvalOptions,
     ) -> (Evaluation, RunMetrics, Estimate) {
-        let mut cfg = experiment_config(&log.header);
-        cfg.particles = particles;
-        cfg.seed = seed;
-        cfg.version = version;
-        let mut slam = FastSlam::new(cfg).expect("valid configuration");
-        let out = run_log(&mut slam, log, TrajectoryEstimate::Mean, |_, _| {}).expect("run");
+        let out = run(log, particles, seed, version);
         let ev = evaluate(&out.estimate, truth, out.metrics.shared_frame, opts);
         (ev, out.metrics, out.final_estimate)
     }

@@ -976,20 +976,12 @@ mod tests {
         FastSlam::from_snapshot(snap, f.updater().clone()).unwrap()
     }
 
+    /// Robot "r" observing landmark 7 at `z` at t = 1 without moving.
     fn record(z: &[[f64; 2]]) -> Record {
         Record {
-            robot: "r".into(),
             seq: 0,
-            t: 1.0,
             motion: None,
-            landmarks: z
-                .iter()
-                .map(|z| LandmarkObservation {
-                    id: Some(7),
-                    z: z.to_vec(),
-                })
-                .collect(),
-            robots: Vec::new(),
+            ..moving("r", 1.0, z, &[])
         }
     }
 

@@ -152,14 +152,28 @@ struct ServeArgs {
     /// Token for reading (state, runs, exports, metrics) when reads need one.
     #[arg(long)]
     read_token: Option<String>,
+    /// Serve as one replica of a cluster: records through NATS JetStream (--nats), runs
+    /// owned by lease, the store in PostgreSQL (--database-url) shared by every replica.
+    #[arg(long)]
+    cluster: bool,
+    /// NATS servers (comma-separated) for --cluster.
+    #[arg(long)]
+    nats: Option<String>,
+    /// This replica's name in the cluster (default: a random one).
+    #[arg(long)]
+    replica_id: Option<String>,
+    /// Replicas of the record stream and lease buckets (3 on a 3-node NATS cluster).
+    #[arg(long)]
+    stream_replicas: Option<usize>,
 }
 
 #[derive(Debug, Args)]
 struct ReplayArgs {
     log: PathBuf,
-    /// The server's base URL.
-    #[arg(long, default_value = "http://127.0.0.1:8080")]
-    server: String,
+    /// The server's base URL; several (comma-separated or repeated) for a cluster's
+    /// replicas: the robots are spread over them and move on when one fails.
+    #[arg(long, default_value = "http://127.0.0.1:8080", value_delimiter = ',', num_args = 1..)]
+    server: Vec<String>,
     /// Join an existing run (its robots must not be registered yet) instead of creating one.
     #[arg(long)]
     run: Option<String>,
@@ -673,6 +687,18 @@ async fn cmd_serve(a: ServeArgs) -> Result<()> {
     if let Some(v) = a.read_token {
         cfg.read_token = Some(v);
     }
+    if a.cluster {
+        cfg.cluster = true;
+    }
+    if let Some(v) = a.nats {
+        cfg.nats_url = Some(v);
+    }
+    if let Some(v) = a.replica_id {
+        cfg.replica_id = Some(v);
+    }
+    if let Some(v) = a.stream_replicas {
+        cfg.stream_replicas = v;
+    }
     let running = fleetslam_server::server::start(&cfg).await?;
     println!(
         "fleetslam serving on http://{} (store: {})",
@@ -700,7 +726,7 @@ fn replay_options(a: &ReplayArgs) -> Result<replay::ReplayOptions> {
         bail!("--speed must be > 0, got {}", a.speed);
     }
     Ok(replay::ReplayOptions {
-        server: a.server.clone(),
+        servers: a.server.clone(),
         run: a.run.clone(),
         config,
         admin_token: a.admin_token.clone(),
@@ -715,19 +741,27 @@ fn replay_options(a: &ReplayArgs) -> Result<replay::ReplayOptions> {
     })
 }
 
-async fn end_run(server: &str, run: &str, admin: Option<&str>) -> Result<()> {
-    let mut req = reqwest::Client::new().post(format!(
-        "{}/v1/runs/{run}/end",
-        server.trim_end_matches('/')
-    ));
-    if let Some(t) = admin {
-        req = req.bearer_auth(t);
+/// Ends a run through the first of `servers` that answers.
+async fn end_run(servers: &[String], run: &str, admin: Option<&str>) -> Result<()> {
+    let mut last = None;
+    for server in servers {
+        let mut req = reqwest::Client::new().post(format!(
+            "{}/v1/runs/{run}/end",
+            server.trim_end_matches('/')
+        ));
+        if let Some(t) = admin {
+            req = req.bearer_auth(t);
+        }
+        match req.send().await {
+            Ok(resp) if resp.status().is_success() => return Ok(()),
+            Ok(resp) if !resp.status().is_server_error() => {
+                bail!("ending run {run}: {}", resp.status())
+            }
+            Ok(resp) => last = Some(anyhow::anyhow!("ending run {run}: {}", resp.status())),
+            Err(e) => last = Some(anyhow::Error::new(e).context(format!("ending run {run}"))),
+        }
     }
-    let resp = req.send().await?;
-    if !resp.status().is_success() {
-        bail!("ending run {run}: {}", resp.status());
-    }
-    Ok(())
+    Err(last.unwrap_or_else(|| anyhow::anyhow!("ending run {run}: no server given")))
 }
 
 async fn cmd_replay(a: ReplayArgs) -> Result<()> {
@@ -772,7 +806,7 @@ async fn cmd_demo(a: DemoArgs) -> Result<()> {
                 ..SimConfig::default()
             })?;
             let o = replay::ReplayOptions {
-                server: server.clone(),
+                servers: vec![server.clone()],
                 run: None,
                 config: serde_json::json!({"particles": a.particles, "seed": seed}),
                 admin_token: None,
@@ -788,7 +822,7 @@ async fn cmd_demo(a: DemoArgs) -> Result<()> {
             println!("  state:     {server}/v1/runs/{run}/state");
             println!("  live:      ws://{}/v1/runs/{run}/live", running.addr);
             let summary = replay::play(&sim.log, &run, tokens, &o).await?;
-            end_run(&server, &run, None).await?;
+            end_run(std::slice::from_ref(&server), &run, None).await?;
             println!("{summary}");
             seed += 1;
         }

@@ -4,8 +4,11 @@
 //! as fast as the server accepts. A request that fails for a reason that may pass (no
 //! connection, 5xx, 503 busy) is retried with backoff: records carry sequence numbers and a
 //! repeat is acknowledged again and applied once, so a replay survives a server restart.
+//!
+//! Given several servers (the replicas of a cluster), the robots are spread over them
+//! (robot k posts to server k mod n) and a robot whose server fails moves on to the next.
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
 use fleetslam_core::log::{Log, Record};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::{Value, json};
@@ -24,7 +27,8 @@ pub enum Pace {
 
 #[derive(Debug, Clone)]
 pub struct ReplayOptions {
-    pub server: String,
+    /// Base URLs: one server, or the replicas of a cluster.
+    pub servers: Vec<String>,
     /// Join this run instead of creating one.
     pub run: Option<String>,
     /// FilterConfig overrides for a new run.
@@ -84,24 +88,70 @@ fn client() -> Result<reqwest::Client> {
         .build()?)
 }
 
+impl ReplayOptions {
+    /// The servers' base URLs, starting with the `k`-th (mod n).
+    pub fn bases(&self, k: usize) -> Vec<String> {
+        let n = self.servers.len().max(1);
+        (0..self.servers.len())
+            .map(|i| self.servers[(k + i) % n].trim_end_matches('/').to_string())
+            .collect()
+    }
+}
+
+/// POSTs to the first server that answers; a refusal (4xx) is final, a server that cannot
+/// be reached or fails (5xx) passes the request to the next one.
+async fn post_any(
+    c: &reqwest::Client,
+    bases: &[String],
+    path: &str,
+    token: Option<&str>,
+    body: &Value,
+) -> Result<Value> {
+    let mut last = None;
+    for base in bases {
+        match post_json(c, &format!("{base}{path}"), token, body).await {
+            Ok(v) => return Ok(v),
+            Err(PostError::Refused(e)) => return Err(e),
+            Err(PostError::Failed(e)) => last = Some(e),
+        }
+    }
+    Err(last.unwrap_or_else(|| anyhow::anyhow!("no server given")))
+}
+
+enum PostError {
+    /// The server answered 4xx.
+    Refused(anyhow::Error),
+    /// No answer, or 5xx.
+    Failed(anyhow::Error),
+}
+
 async fn post_json(
     c: &reqwest::Client,
     url: &str,
     token: Option<&str>,
     body: &Value,
-) -> Result<Value> {
+) -> Result<Value, PostError> {
     let mut req = c.post(url).json(body);
     if let Some(t) = token {
         req = req.bearer_auth(t);
     }
-    let resp = req.send().await.with_context(|| format!("POST {url}"))?;
+    let resp = req
+        .send()
+        .await
+        .with_context(|| format!("POST {url}"))
+        .map_err(PostError::Failed)?;
     let status = resp.status();
     let v: Value = resp.json().await.unwrap_or(Value::Null);
     if !status.is_success() {
-        bail!(
+        let e = anyhow::anyhow!(
             "POST {url}: {status}: {}",
             v["message"].as_str().unwrap_or(&v.to_string())
         );
+        return Err(if status.is_server_error() {
+            PostError::Failed(e)
+        } else {
+            PostError::Refused(e)
+        });
     }
     Ok(v)
 }
@@ -113,7 +163,7 @@ pub async fn put_truth(
     truth: &fleetslam_data::formats::Truth,
 ) -> Result<()> {
     let c = client()?;
-    let url = format!("{}/v1/runs/{run}/truth", o.server.trim_end_matches('/'));
+    let url = format!("{}/v1/runs/{run}/truth", o.bases(0)[0]);
     let mut req = c
         .put(&url)
         .json(&fleetslam_server::history::truth_to_json(truth));
@@ -132,13 +182,13 @@ pub async fn put_truth(
 /// Creates (or joins) the run and registers the log's robots; returns run id and tokens.
 pub async fn setup(log: &Log, o: &ReplayOptions) -> Result<(String, Vec<(String, String)>)> {
     let c = client()?;
-    let base = o.server.trim_end_matches('/');
     let run = match &o.run {
         Some(r) => r.clone(),
         None => {
-            let v = post_json(
+            let v = post_any(
                 &c,
-                &format!("{base}/v1/runs"),
+                &o.bases(0),
+                "/v1/runs",
                 o.admin_token.as_deref(),
                 &json!({
                     "name": log.header.name,
@@ -155,10 +205,11 @@ pub async fn setup(log: &Log, o: &ReplayOptions) -> Result<(String, Vec<(String,
         }
     };
     let mut tokens = Vec::new();
-    for r in &log.header.robots {
-        let v = post_json(
+    for (k, r) in log.header.robots.iter().enumerate() {
+        let v = post_any(
             &c,
-            &format!("{base}/v1/runs/{run}/robots"),
+            &o.bases(k),
+            &format!("/v1/runs/{run}/robots"),
             None,
             &json!({"id": r.id, "start": r.start, "t0": r.t0}),
         )
@@ -179,7 +230,6 @@ pub async fn play(
     tokens: Vec<(String, String)>,
     o: &ReplayOptions,
 ) -> Result<ReplaySummary> {
-    let base = o.server.trim_end_matches('/').to_string();
     let total = log.records.len() as u64;
     let bar = if o.progress {
         ProgressBar::new(total)
@@ -202,17 +252,22 @@ pub async fn play(
         .fold(f64::INFINITY, f64::min);
     let start = Instant::now();
     let mut tasks = Vec::new();
-    for (robot, token) in tokens {
+    for (k, (robot, token)) in tokens.into_iter().enumerate() {
         let records: Vec<Record> = log
             .records
             .iter()
             .filter(|r| r.robot == robot)
             .cloned()
             .collect();
-        let (c, counters, bar, base) = (client()?, counters.clone(), bar.clone(), base.clone());
+        let (c, counters, bar, bases) = (client()?, counters.clone(), bar.clone(), o.bases(k));
         let (run, pace, batch) = (run.to_string(), o.pace, o.batch.max(1));
         tasks.push(tokio::spawn(async move {
-            let url = format!("{base}/v1/runs/{run}/observations");
+            let urls: Vec<String> = bases
+                .iter()
+                .map(|b| format!("{b}/v1/runs/{run}/observations"))
+                .collect();
+            // The server this robot posts to; it moves on when that one fails.
+            let mut at = 0;
             let mut latencies = Vec::with_capacity(records.len());
             let mut i = 0;
             while i < records.len() {
@@ -236,7 +291,8 @@ pub async fn play(
                 let mut backoff = Duration::from_millis(50);
                 loop {
                     let t0 = Instant::now();
-                    let sent = c.post(&url).bearer_auth(&token).json(chunk).send().await;
+                    let url = &urls[at % urls.len()];
+                    let sent = c.post(url).bearer_auth(&token).json(chunk).send().await;
                     match sent {
                         Ok(resp)
                             if resp.status().is_success()
@@ -266,14 +322,16 @@ pub async fn play(
                             break;
                         }
                         Ok(resp)
-                            if resp.status().is_server_error()
+                            if resp.status() == reqwest::StatusCode::SERVICE_UNAVAILABLE
                                 || resp.status() == reqwest::StatusCode::TOO_MANY_REQUESTS => {}
+                        Ok(resp) if resp.status().is_server_error() => at += 1,
                         Ok(resp) => {
                             let status = resp.status();
                             let v: Value = resp.json().await.unwrap_or(Value::Null);
                             anyhow::bail!("robot {robot}: {status}: {}", v["message"]);
                         }
-                        Err(_) => {}
+                        // No answer: this server may be gone; the next one takes the robot.
+                        Err(_) => at += 1,
                     }
                     counters.retried.fetch_add(1, Ordering::Relaxed);
                     tokio::time::sleep(backoff).await;

@@ -92,6 +92,7 @@ impl AppState {
                 HashMap::new(),
                 None,
                 None,
+                crate::coordinator::Clock::Wall,
             )
             .await;
         Ok(live.handle.clone())
@@ -559,6 +560,15 @@ pub async fn rerun(
     body: Bytes,
 ) -> Result<(StatusCode, Json<RerunStarted>), ApiError> {
     check_admin(&state, &headers)?;
+    if state.cluster.is_some() {
+        // A re-run is fed from the store by a local coordinator that holds no lease: in a
+        // cluster another replica would take it as a run without an owner.
+        return Err(ApiError::Conflict(
+            "re-runs are not offered in cluster mode yet: export the run and replay it \
+             (fleetslam export, fleetslam replay) into a new run"
+                .into(),
+        ));
+    }
     let req: Rerun = if body.iter().all(u8::is_ascii_whitespace) {
         Rerun {
             name: None,
@@ -607,6 +617,7 @@ pub async fn rerun(
             HashMap::new(),
             None,
             None,
+            crate::coordinator::Clock::Wall,
         )
         .await;
     for r in state.store.robots(&run).await? {
@@ -682,7 +693,9 @@ pub async fn delete_run(
     Path(run): Path<String>,
 ) -> Result<StatusCode, ApiError> {
     check_admin(&state, &headers)?;
-    if state.running(&run).await.is_some() {
+    let active_elsewhere = state.cluster.is_some()
+        && state.store.run_status(&run).await?.as_deref() == Some(fleetslam_store::STATUS_ACTIVE);
+    if active_elsewhere || state.running(&run).await.is_some() {
         return Err(ApiError::Conflict(format!(
             "run {run} is active: end it first with POST /v1/runs/{run}/end"
         )));

@@ -79,6 +79,9 @@ pub struct AppState {
     /// requests.
     creating: Arc<tokio::sync::Mutex<()>>,
     pub(crate) ws: Arc<crate::ws_limit::WsLimits>,
+    /// Set in cluster mode ([`crate::cluster`]): records go through JetStream and runs are
+    /// owned by lease.
+    pub cluster: Option<Arc<crate::cluster::Cluster>>,
 }
 
 impl AppState {
@@ -90,7 +93,14 @@ impl AppState {
             metrics: Arc::default(),
             creating: Arc::default(),
             ws: Arc::default(),
+            cluster: None,
         }
+    }
+
+    /// The same state as a replica of a cluster.
+    pub fn with_cluster(mut self, cluster: Arc<crate::cluster::Cluster>) -> Self {
+        self.cluster = Some(cluster);
+        self
     }
 
     /// Starts the coordinator of a run and makes it reachable.
@@ -106,6 +116,7 @@ impl AppState {
         tokens: HashMap<String, String>,
         enrollment: Option<String>,
         training: Option<history::Training>,
+        clock: coordinator::Clock,
     ) -> Arc<LiveRun> {
         let handle = coordinator::spawn(
             id.clone(),
@@ -114,6 +125,7 @@ impl AppState {
             self.config.coordinator.clone(),
             recovered,
             training,
+            clock,
         );
         let live = Arc::new(LiveRun {
             handle,
@@ -205,6 +217,18 @@ fn new_token() -> String {
 
 /// The artifact that holds a run's enrollment token hash (never served).
 pub(crate) const ENROLLMENT: &str = "enrollment";
+
+/// The artifact that holds what a run was created with beyond its filter configuration: a
+/// recovery before the run's first snapshot (and a cluster replica that takes a new run)
+/// starts from it.
+pub(crate) const SETUP: &str = "setup";
+
+/// The body of [`SETUP`].
+#[derive(Debug, Default, Serialize, Deserialize)]
+pub(crate) struct RunSetup {
+    pub(crate) localize: Option<fleetslam_localize::LocalizeConfig>,
+    pub(crate) training: Option<fleetslam_learned::RecordingConfig>,
+}
 
 /// Parses JSON into `T`, turning serde's message into a 400 that names the field.
 pub(crate) fn parse_json<T: serde::de::DeserializeOwned>(
@@ -300,12 +324,21 @@ pub(crate) async fn create_run(
         .map(|t| overlay(&fleetslam_learned::RecordingConfig::default(), t))
         .transpose()
         .map_err(|e| ApiError::BadRequest(format!("training: {e}")))?;
+    let setup = serde_json::to_string(&RunSetup {
+        localize: Some(localize.clone()),
+        training,
+    })
+    .map_err(ApiError::internal)?;
     let updater = history::updater_for(&state.store, &config).await?;
     let (updater, training) = history::recording(updater, training)?;
     let filter = history::new_filter(&config, localize, updater)?;
     // Counted and inserted under one lock, so that concurrent requests cannot pass the bound.
     let _creating = state.creating.lock().await;
-    let active = state.runs.read().await.len();
+    // In a cluster the bound is the cluster's: every active run in the store.
+    let active = match &state.cluster {
+        Some(_) => state.store.active_run_ids().await?.len(),
+        None => state.runs.read().await.len(),
+    };
     if active >= limits.max_active_runs {
         return Err(ApiError::Busy {
             message: format!(
@@ -340,6 +373,19 @@ pub(crate) async fn create_run(
             &serde_json::json!({ "token_sha256": enrollment }).to_string(),
         )
         .await?;
+    state.store.put_artifact(&id, SETUP, &setup).await?;
+    if state.cluster.is_some() {
+        // The least loaded replica takes it (crate::cluster).
+        tracing::info!(run = %id, "run created; a replica will take it");
+        return Ok((
+            StatusCode::CREATED,
+            Json(RunCreated {
+                id,
+                config,
+                enrollment_token,
+            }),
+        ));
+    }
     state
         .insert_live(
             id.clone(),
@@ -349,6 +395,7 @@ pub(crate) async fn create_run(
             HashMap::new(),
             Some(enrollment),
             training,
+            coordinator::Clock::Wall,
         )
         .await;
     tracing::info!(run = %id, "run created");
@@ -448,6 +495,13 @@ pub(crate) async fn end_run(
     Path(run): Path<String>,
 ) -> Result<StatusCode, ApiError> {
     check_admin(&state, &headers)?;
+    if let Some(cluster) = &state.cluster {
+        // Through the run's subject, so that its owner ends it after every record
+        // acknowledged before.
+        ClusterRun::load(&state, &run).await?;
+        cluster.end_run(&state, &run).await?;
+        return Ok(StatusCode::NO_CONTENT);
+    }
     let live = state.live(&run).await?;
     finish_run(&state, &run, &live).await?;
     Ok(StatusCode::NO_CONTENT)
@@ -518,6 +572,9 @@ pub(crate) async fn register_robot(
     headers: HeaderMap,
     body: Bytes,
 ) -> Result<(StatusCode, Json<RobotRegistered>), ApiError> {
+    if state.cluster.is_some() {
+        return register_robot_in_cluster(&state, &run, &headers, &body).await;
+    }
     let live = state.live(&run).await?;
     let auth = &state.config.auth;
     if auth.admin_token.is_some() {
@@ -655,6 +712,9 @@ pub(crate) async fn post_observations(
     headers: HeaderMap,
     body: Bytes,
 ) -> Result<Response, ApiError> {
+    if state.cluster.is_some() {
+        return post_observations_in_cluster(&state, &run, &headers, &body).await;
+    }
     let live = state.live(&run).await?;
     let token = crate::auth::bearer(&headers).ok_or_else(|| {
         ApiError::Unauthorized(
@@ -704,6 +764,17 @@ pub(crate) async fn live(
     ws: WebSocketUpgrade,
     permit: crate::ws_limit::WsPermit,
 ) -> Result<Response, ApiError> {
+    if let Some(cluster) = &state.cluster
+        && state.running(&run).await.is_none()
+    {
+        // Owned by another replica: its states and events, relayed.
+        ClusterRun::load(&state, &run).await?;
+        let (states, events) = cluster.subscribe_live(&run).await?;
+        return Ok(ws.on_upgrade(move |socket| async move {
+            let _slot = permit;
+            relay_run(socket, states, events).await
+        }));
+    }
     let live = state.live(&run).await?;
     let rate = state.config.coordinator.state_rate_hz;
     Ok(ws.on_upgrade(move |socket| async move {
@@ -757,6 +828,248 @@ async fn stream_run(mut socket: WebSocket, handle: RunHandle, rate: f64) {
                 Some(Ok(Message::Close(_))) | None | Some(Err(_)) => return,
                 _ => {}
             },
+        }
+    }
+}
+
+/// What a cluster replica needs to know of a run to check requests for it: read from the
+/// store, kept per run (the status is read again on every request).
+#[derive(Debug)]
+pub(crate) struct ClusterRun {
+    pub(crate) config: FilterConfig,
+    enrollment: Option<String>,
+    /// sha256(token) hex -> robot id; read again from the store on a miss (the robot may
+    /// have registered through another replica).
+    tokens: RwLock<HashMap<String, String>>,
+}
+
+impl ClusterRun {
+    /// The run, if it is active (the errors of a single server otherwise).
+    pub(crate) async fn load(state: &AppState, run: &str) -> Result<Arc<ClusterRun>, ApiError> {
+        let cluster = state
+            .cluster
+            .as_ref()
+            .ok_or_else(|| ApiError::internal(anyhow::anyhow!("not in cluster mode")))?;
+        match state.store.run_status(run).await?.as_deref() {
+            Some("active") => {}
+            Some(_) => {
+                let row = state.store.get_run(run).await?;
+                return Err(match row {
+                    Some(row) => api_history::not_running(&row),
+                    None => ApiError::NotFound(format!("no run {run}")),
+                });
+            }
+            None => {
+                return Err(ApiError::NotFound(format!(
+                    "no run {run}: list runs with GET /v1/runs"
+                )));
+            }
+        }
+        if let Some(info) = cluster.runs.read().await.get(run) {
+            return Ok(info.clone());
+        }
+        let row = state
+            .store
+            .get_run(run)
+            .await?
+            .ok_or_else(|| ApiError::NotFound(format!("no run {run}")))?;
+        let config: FilterConfig = serde_json::from_value(row.config)
+            .map_err(|e| ApiError::internal(anyhow::anyhow!("stored config: {e}")))?;
+        let enrollment = match state.store.get_artifact(run, ENROLLMENT).await? {
+            Some(body) => serde_json::from_str::<serde_json::Value>(&body)
+                .ok()
+                .and_then(|v| v["token_sha256"].as_str().map(str::to_string)),
+            None => None,
+        };
+        let info = Arc::new(ClusterRun {
+            config,
+            enrollment,
+            tokens: RwLock::new(HashMap::new()),
+        });
+        info.reload_tokens(state, run).await?;
+        cluster
+            .runs
+            .write()
+            .await
+            .insert(run.to_string(), info.clone());
+        Ok(info)
+    }
+
+    async fn reload_tokens(&self, state: &AppState, run: &str) -> Result<(), ApiError> {
+        let robots = state.store.robots(run).await?;
+        *self.tokens.write().await = robots
+            .into_iter()
+            .map(|r| (r.token_hash, r.robot_id))
+            .collect();
+        Ok(())
+    }
+
+    /// The robot whose token this is.
+    async fn robot(&self, state: &AppState, run: &str, token: &str) -> Result<String, ApiError> {
+        let hash = token_hash(token);
+        if let Some(r) = self.tokens.read().await.get(&hash) {
+            return Ok(r.clone());
+        }
+        self.reload_tokens(state, run).await?;
+        self.tokens
+            .read()
+            .await
+            .get(&hash)
+            .cloned()
+            .ok_or_else(|| ApiError::Unauthorized("unknown robot token for this run".into()))
+    }
+}
+
+/// Checks a registration as [`register_robot`] does, stores the robot's row, then publishes
+/// the registration to the run's subject: its owner adds the robot at that point of the
+/// run's order.
+async fn register_robot_in_cluster(
+    state: &AppState,
+    run: &str,
+    headers: &HeaderMap,
+    body: &[u8],
+) -> Result<(StatusCode, Json<RobotRegistered>), ApiError> {
+    let cluster = state.cluster.as_ref().expect("cluster mode");
+    let info = ClusterRun::load(state, run).await?;
+    let auth = &state.config.auth;
+    if auth.admin_token.is_some() {
+        let given = crate::auth::bearer(headers);
+        let admin = crate::auth::is_admin(auth, headers);
+        let enrolled = match (given, &info.enrollment) {
+            (Some(g), Some(hash)) => crate::auth::hash_matches(g, hash),
+            _ => false,
+        };
+        if !(admin | enrolled) {
+            return Err(ApiError::Unauthorized(
+                "registering a robot needs the admin token or the run's enrollment token \
+                 (`enrollment_token` from POST /v1/runs): send `Authorization: Bearer <token>`"
+                    .into(),
+            ));
+        }
+    }
+    let req: RegisterRobot = parse_json("robot", body)?;
+    let limits = &state.config.limits;
+    limits
+        .check_name("id", &req.id)
+        .map_err(ApiError::BadRequest)?;
+    if let Some(t0) = req.t0
+        && !t0.is_finite()
+    {
+        return Err(ApiError::BadRequest(format!(
+            "t0 must be a finite time in seconds, got {t0}"
+        )));
+    }
+    if let Some(start) = &req.start {
+        crate::limits::check_start(start)
+            .map_err(|e| ApiError::BadRequest(format!("start: {e}")))?;
+    }
+    let robots = state.store.robots(run).await?;
+    if robots.iter().any(|r| r.robot_id == req.id) {
+        return Err(ApiError::Conflict(format!(
+            "robot {:?} is already registered in this run",
+            req.id
+        )));
+    }
+    if robots.len() >= limits.max_robots_per_run {
+        return Err(ApiError::Conflict(format!(
+            "run {run} has {} robots, the most a run takes (max_robots_per_run)",
+            robots.len()
+        )));
+    }
+    let token = new_token();
+    let hash = token_hash(&token);
+    let row = NewRobot {
+        robot_id: req.id.clone(),
+        start: req
+            .start
+            .as_ref()
+            .map(serde_json::to_value)
+            .transpose()
+            .map_err(ApiError::internal)?,
+        token_hash: hash.clone(),
+        t0: req.t0,
+    };
+    // The store's key refuses a robot registered meanwhile through another replica.
+    state.store.add_robot(run, &row).await?;
+    cluster
+        .publish_registration(run, &req.id, req.start.clone(), req.t0, &hash)
+        .await?;
+    info.tokens.write().await.insert(hash, req.id.clone());
+    let mode = if req.start.is_some() {
+        "mapping"
+    } else {
+        "localizing"
+    };
+    Ok((
+        StatusCode::CREATED,
+        Json(RobotRegistered {
+            robot: req.id,
+            token,
+            mode,
+        }),
+    ))
+}
+
+/// Checks records as [`post_observations`] does and publishes them to the run's subject;
+/// acknowledged once JetStream has acknowledged each.
+async fn post_observations_in_cluster(
+    state: &AppState,
+    run: &str,
+    headers: &HeaderMap,
+    body: &[u8],
+) -> Result<Response, ApiError> {
+    let cluster = state.cluster.as_ref().expect("cluster mode");
+    let info = ClusterRun::load(state, run).await?;
+    let token = crate::auth::bearer(headers).ok_or_else(|| {
+        ApiError::Unauthorized(
+            "send the robot's token as `Authorization: Bearer <token>` (from registration)".into(),
+        )
+    })?;
+    let robot = info.robot(state, run, token).await?;
+    let limits = &state.config.limits;
+    let records = parse_records(headers, body, limits.max_records_per_request)?;
+    if records.is_empty() {
+        return Err(ApiError::BadRequest("no records in the body".into()));
+    }
+    for (i, r) in records.iter().enumerate() {
+        if r.robot != robot {
+            return Err(ApiError::Forbidden(format!(
+                "record {i} is for robot {:?} but the token is robot {robot:?}'s: a robot \
+                 posts only its own records",
+                crate::limits::truncate(&r.robot, 80)
+            )));
+        }
+        r.validate(info.config.landmark_kind, info.config.motion_model)
+            .and_then(|()| limits.check_record(r))
+            .map_err(|e| ApiError::BadRequest(format!("record {i} (seq {}): {e}", r.seq)))?;
+    }
+    let acks = cluster.publish_records(run, &records).await?;
+    Ok((StatusCode::OK, Json(IngestResponse { acks })).into_response())
+}
+
+/// The live websocket of a run that another replica owns: the owner's messages as it
+/// publishes them (it throttles the states).
+async fn relay_run(
+    mut socket: WebSocket,
+    mut states: async_nats::Subscriber,
+    mut events: async_nats::Subscriber,
+) {
+    use futures::StreamExt;
+    loop {
+        let msg = tokio::select! {
+            m = states.next() => m,
+            m = events.next() => m,
+            msg = socket.recv() => match msg {
+                Some(Ok(Message::Close(_))) | None | Some(Err(_)) => return,
+                _ => continue,
+            },
+        };
+        let Some(m) = msg else { return };
+        let Ok(text) = String::from_utf8(m.payload.to_vec()) else {
+            continue;
+        };
+        if socket.send(Message::Text(text.into())).await.is_err() {
+            return;
         }
     }
 }

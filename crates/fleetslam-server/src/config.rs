@@ -79,6 +79,20 @@ pub struct ServerConfig {
     pub ws_max_per_run: usize,
     /// Websocket clients of all runs together; one more gets a JSON 503. Default 256.
     pub ws_max_total: usize,
+    /// Run as one replica of a cluster ([`crate::cluster`]): records go through NATS
+    /// JetStream (`nats_url`), runs are owned by lease, the store must be PostgreSQL
+    /// (`database_url`), shared by every replica. Default false.
+    pub cluster: bool,
+    /// NATS servers, comma-separated (`nats://host:4222,...`); cluster mode only.
+    pub nats_url: Option<String>,
+    /// This replica's name in the cluster; default a random one per start.
+    pub replica_id: Option<String>,
+    /// Replicas of the record stream and the lease buckets in JetStream (3 on a 3-node NATS
+    /// cluster, 1 on a single node). Default 3.
+    pub stream_replicas: usize,
+    /// How long a run's lease lasts unless its owner renews it [ms]: the longest a killed
+    /// owner's runs wait for another replica. Default 3000.
+    pub lease_ttl_ms: u64,
 }
 
 impl Default for ServerConfig {
@@ -109,12 +123,17 @@ impl Default for ServerConfig {
             max_name_bytes: Limits::default().max_name_bytes,
             ws_max_per_run: crate::ws_limit::DEFAULT_WS_MAX_PER_RUN,
             ws_max_total: crate::ws_limit::DEFAULT_WS_MAX_TOTAL,
+            cluster: false,
+            nats_url: None,
+            replica_id: None,
+            stream_replicas: 3,
+            lease_ttl_ms: 3000,
         }
     }
 }
 
 /// The environment variables read, each overriding the field of the same name.
-pub const ENV_KEYS: [&str; 25] = [
+pub const ENV_KEYS: [&str; 30] = [
     "bind",
     "data_dir",
     "database_url",
@@ -140,6 +159,11 @@ pub const ENV_KEYS: [&str; 25] = [
     "max_name_bytes",
     "ws_max_per_run",
     "ws_max_total",
+    "cluster",
+    "nats_url",
+    "replica_id",
+    "stream_replicas",
+    "lease_ttl_ms",
 ];
 
 impl ServerConfig {
@@ -176,6 +200,8 @@ impl ServerConfig {
                         | "read_token"
                         | "read_access"
                         | "web_dir"
+                        | "nats_url"
+                        | "replica_id"
                 );
                 v[key] = if is_string {
                     serde_json::Value::String(raw)
@@ -188,7 +214,7 @@ impl ServerConfig {
                         .collect()
                 } else {
                     serde_json::from_str(&raw)
-                        .map_err(|_| format!("{name}={raw:?} is not a number"))?
+                        .map_err(|_| format!("{name}={raw:?} is not a number or boolean"))?
                 };
             }
         }
@@ -197,6 +223,34 @@ impl ServerConfig {
     }
 
     pub fn validate(&self) -> Result<(), String> {
+        if self.cluster {
+            if self.nats_url.as_deref().is_none_or(str::is_empty) {
+                return Err("cluster mode needs nats_url (--nats URL)".into());
+            }
+            if !self
+                .database_url
+                .as_deref()
+                .is_some_and(|u| u.starts_with("postgres://") || u.starts_with("postgresql://"))
+            {
+                return Err(
+                    "cluster mode needs a PostgreSQL database_url (--database-url \
+                     postgres://...) that every replica shares"
+                        .into(),
+                );
+            }
+            if self.stream_replicas == 0 || self.stream_replicas > 5 {
+                return Err(format!(
+                    "stream_replicas must be 1 to 5 (JetStream's limit), got {}",
+                    self.stream_replicas
+                ));
+            }
+            if self.lease_ttl_ms < 300 {
+                return Err(format!(
+                    "lease_ttl_ms must be at least 300, got {}",
+                    self.lease_ttl_ms
+                ));
+            }
+        }
         if self.queue_capacity == 0 {
             return Err("queue_capacity must be at least 1".into());
         }
@@ -264,6 +318,30 @@ impl ServerConfig {
             max_active_runs: self.max_active_runs,
             max_name_bytes: self.max_name_bytes,
         }
+    }
+
+    /// The cluster settings, when in cluster mode.
+    pub fn cluster(&self) -> Option<crate::cluster::ClusterConfig> {
+        if !self.cluster {
+            return None;
+        }
+        let mut c = crate::cluster::ClusterConfig {
+            nats_urls: self
+                .nats_url
+                .iter()
+                .flat_map(|u| u.split(','))
+                .map(str::trim)
+                .filter(|u| !u.is_empty())
+                .map(str::to_string)
+                .collect(),
+            stream_replicas: self.stream_replicas,
+            lease_ttl: std::time::Duration::from_millis(self.lease_ttl_ms),
+            ..Default::default()
+        };
+        if let Some(id) = &self.replica_id {
+            c.replica_id = id.clone();
+        }
+        Some(c)
     }
 
     pub fn api(&self) -> ApiConfig {

@@ -83,6 +83,50 @@ impl Default for CoordinatorConfig {
     }
 }
 
+/// The merge's clock: when a silent robot stops holding the others back.
+///
+/// A single server uses the wall clock. A cluster replica that owns a run reads the run's
+/// records from its JetStream stream and uses the stream's own clock instead (the time
+/// JetStream stored each message, [`Clock::advance`]d by [`crate::cluster`] before each
+/// message is handed over): which robot counts as silent is then a function of the stream,
+/// so a replica that takes the run over replays it to the same decisions.
+#[derive(Debug, Clone, Default)]
+pub enum Clock {
+    #[default]
+    Wall,
+    Stream(Arc<Mutex<Instant>>),
+}
+
+impl Clock {
+    /// A stream clock that starts at `at`.
+    pub fn stream(at: Instant) -> Self {
+        Clock::Stream(Arc::new(Mutex::new(at)))
+    }
+
+    pub fn now(&self) -> Instant {
+        match self {
+            Clock::Wall => Instant::now(),
+            Clock::Stream(t) => *t.lock().unwrap_or_else(|p| p.into_inner()),
+        }
+    }
+
+    /// Moves a stream clock forward to `to` (never back); the wall clock ignores it.
+    pub fn advance(&self, to: Instant) {
+        if let Clock::Stream(t) = self {
+            let mut t = t.lock().unwrap_or_else(|p| p.into_inner());
+            if to > *t {
+                *t = to;
+            }
+        }
+    }
+
+    /// Whether the coordinator wakes up by itself for a silent robot (the wall clock), or
+    /// only when the stream moves its clock.
+    fn wakes(&self) -> bool {
+        matches!(self, Clock::Wall)
+    }
+}
+
 /// What became of one posted record.
 #[derive(Debug, Clone, Serialize, PartialEq, utoipa::ToSchema)]
 pub struct RecordAck {
@@ -220,6 +264,9 @@ pub enum Command {
         row: NewRobot,
         start: Option<PoseGaussian>,
         t0: Option<f64>,
+        /// The robot's row is already in the store (a cluster replica stored it before it
+        /// published the registration).
+        stored: bool,
         reply: oneshot::Sender<Result<(), ApiError>>,
     },
     End {
@@ -305,6 +352,25 @@ impl RunHandle {
             row,
             start,
             t0,
+            stored: false,
+            reply,
+        })
+        .await
+    }
+
+    /// Adds a robot whose row a cluster replica has already stored (see
+    /// [`crate::cluster`]); otherwise as [`RunHandle::add_robot`].
+    pub async fn add_stored_robot(
+        &self,
+        row: NewRobot,
+        start: Option<PoseGaussian>,
+        t0: Option<f64>,
+    ) -> Result<(), ApiError> {
+        self.call(|reply| Command::AddRobot {
+            row,
+            start,
+            t0,
+            stored: true,
             reply,
         })
         .await
@@ -416,6 +482,7 @@ pub fn spawn(
     cfg: CoordinatorConfig,
     recovered: Option<Recovered>,
     training: Option<history::Training>,
+    clock: Clock,
 ) -> RunHandle {
     let (tx, rx) = mpsc::channel(cfg.queue_capacity.max(1));
     let (events, _) = broadcast::channel(256);
@@ -452,9 +519,10 @@ pub fn spawn(
         queued: VecDeque::new(),
         handed: 0,
         last_applied: None,
+        clock,
     };
     if let Some(r) = recovered {
-        let now = Instant::now();
+        let now = task.clock.now();
         task.applied = r.applied;
         task.last_snapshot = r.applied;
         task.trajectories = r.trajectories;
@@ -612,6 +680,7 @@ struct Coordinator {
     /// filter holds, which snapshots record. The merger's own position is ahead of it by
     /// the records in `queued` and under way.
     last_applied: Option<OrderKey>,
+    clock: Clock,
 }
 
 /// What a blocking thread hands back: the filter, trajectories and records since the last
@@ -649,7 +718,8 @@ impl Coordinator {
             let deadline = if self.stepping.is_some() {
                 None
             } else {
-                match (self.merger.next_deadline(), self.publish_due()) {
+                let silent = self.merger.next_deadline().filter(|_| self.clock.wakes());
+                match (silent, self.publish_due()) {
                     (Some(a), Some(b)) => Some(a.min(b)),
                     (a, b) => a.or(b),
                 }
@@ -688,6 +758,7 @@ impl Coordinator {
                         row,
                         start,
                         t0,
+                        stored,
                         reply,
                     } => {
                         // The filter and the trajectories must be home.
@@ -697,7 +768,7 @@ impl Coordinator {
                                 "run {} failed ({reason}): it takes no more robots",
                                 self.id
                             ))),
-                            None => self.add_robot(row, start, t0).await,
+                            None => self.add_robot(row, start, t0, stored).await,
                         };
                         let _ = reply.send(r);
                     }
@@ -905,6 +976,7 @@ impl Coordinator {
         row: NewRobot,
         start: Option<PoseGaussian>,
         t0: Option<f64>,
+        stored: bool,
     ) -> Result<(), ApiError> {
         let robot = row.robot_id.clone();
         if self.acked.contains_key(&robot) {
@@ -914,7 +986,9 @@ impl Coordinator {
         }
         // The handler checked the id, t0 and start pose as the filter does, so the filter
         // cannot refuse the robot once it is stored.
-        self.store.add_robot(&self.id, &row).await?;
+        if !stored {
+            self.store.add_robot(&self.id, &row).await?;
+        }
         if let Some(t) = t0 {
             self.start_t = Some(self.start_t.map_or(t, |s| s.max(t)));
         }
@@ -940,7 +1014,7 @@ impl Coordinator {
         }
         let mode = filter.phase(&robot).map_or("mapping", |p| p.as_str());
         // Every robot's records go through the merge, in the one deterministic order.
-        self.merger.add_robot(&robot, t0, 0, Instant::now());
+        self.merger.add_robot(&robot, t0, 0, self.clock.now());
         self.acked.insert(robot.clone(), Acked::default());
         // A recovery restores robots from snapshots: store one that has this robot before
         // the registration is answered.
@@ -1159,7 +1233,7 @@ impl Coordinator {
             }
         };
         // Durable now: update bookkeeping, feed the merger, answer.
-        let now = Instant::now();
+        let now = self.clock.now();
         for (rec, item) in batch.iter().zip(&stored) {
             let acked = self.acked.get_mut(&rec.robot).expect("checked above");
             if !item.duplicate {
@@ -1208,7 +1282,8 @@ impl Coordinator {
         let Some(mut filter) = self.filter.take() else {
             return false;
         };
-        self.queued.extend(self.merger.ready(Instant::now(), flush));
+        self.queued
+            .extend(self.merger.ready(self.clock.now(), flush));
         if self.queued.is_empty() {
             self.filter = Some(filter);
             return false;

@@ -12,6 +12,7 @@
 pub mod api_history;
 pub mod app;
 pub mod auth;
+pub mod cluster;
 pub mod config;
 pub mod coordinator;
 pub mod error;

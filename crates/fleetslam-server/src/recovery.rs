@@ -9,12 +9,11 @@
 //! still be read, exported and deleted.
 
 use crate::app::AppState;
-use crate::coordinator::Recovered;
+use crate::coordinator::{Clock, Recovered};
 use crate::error::ApiError;
 use crate::history::{self, RunSnapshot, Trajectories};
 use fleetslam_core::config::FilterConfig;
 use fleetslam_core::pose::PoseGaussian;
-use fleetslam_localize::LocalizeConfig;
 use fleetslam_store::RunRow;
 use std::collections::{BTreeMap, HashMap};
 use std::time::Instant;
@@ -25,7 +24,7 @@ pub async fn recover(state: &AppState) -> Result<usize, ApiError> {
     let mut n = 0;
     for row in state.store.active_runs().await? {
         let started = Instant::now();
-        match recover_run(state, &row).await {
+        match recover_run(state, &row, Clock::Wall).await {
             Ok(pending) => {
                 n += 1;
                 tracing::info!(
@@ -48,8 +47,12 @@ pub async fn recover(state: &AppState) -> Result<usize, ApiError> {
     Ok(n)
 }
 
-/// Loads one run; returns how many records it has to apply again.
-async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> {
+/// Loads one run (its merge on `clock`); returns how many records it has to apply again.
+pub(crate) async fn recover_run(
+    state: &AppState,
+    row: &RunRow,
+    clock: Clock,
+) -> Result<usize, ApiError> {
     let store = &state.store;
     let config: FilterConfig = serde_json::from_value(row.config.clone())
         .map_err(|e| ApiError::internal(anyhow::anyhow!("stored config: {e}")))?;
@@ -63,7 +66,16 @@ async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> 
         ),
         None => None,
     };
-    let training_cfg = snap.as_ref().and_then(|s| s.training);
+    // Before its first snapshot a run starts from what it was created with.
+    let setup = match store.get_artifact(&row.id, crate::app::SETUP).await? {
+        Some(body) => serde_json::from_str::<crate::app::RunSetup>(&body)
+            .map_err(|e| ApiError::internal(anyhow::anyhow!("stored run setup: {e}")))?,
+        None => crate::app::RunSetup::default(),
+    };
+    let training_cfg = match &snap {
+        Some(s) => s.training,
+        None => setup.training,
+    };
     let (updater, training) = history::recording(updater, training_cfg)?;
     let (mut filter, applied, last, mut trajectories, stored_lens) = match snap {
         Some(snap) => {
@@ -74,7 +86,7 @@ async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> 
             (filter, snap.applied, last, trajectories, stored_lens)
         }
         None => (
-            history::new_filter(&config, LocalizeConfig::default(), updater)?,
+            history::new_filter(&config, setup.localize.unwrap_or_default(), updater)?,
             0,
             None,
             Trajectories::new(),
@@ -82,9 +94,12 @@ async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> 
         ),
     };
     // A robot stored but not in the latest snapshot was being registered when the server
-    // stopped (its registration was never answered): add it now.
+    // stopped (its registration was never answered): add it now. In a cluster its
+    // registration is in the run's stream after the owner's position, and adds it at its
+    // place in the run's order (crate::cluster).
+    let from_stream = matches!(clock, Clock::Stream(_));
     for r in &robots {
-        if filter.phase(&r.robot_id).is_some() {
+        if from_stream || filter.phase(&r.robot_id).is_some() {
             continue;
         }
         let again = |e: fleetslam_localize::LocalizeError| {
@@ -113,6 +128,7 @@ async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> 
     }
     let robot_states = robots
         .iter()
+        .filter(|r| filter.phase(&r.robot_id).is_some())
         .map(|r| {
             (
                 r.robot_id.clone(),
@@ -163,6 +179,7 @@ async fn recover_run(state: &AppState, row: &RunRow) -> Result<usize, ApiError> 
             tokens,
             enrollment,
             training,
+            clock,
         )
         .await;
     Ok(n)

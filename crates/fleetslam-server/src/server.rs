@@ -32,6 +32,9 @@ impl Running {
                 tracing::warn!(run = %live.handle.id, error = %e, "no final snapshot");
             }
         }
+        if let Some(c) = &self.state.cluster {
+            c.release_all().await;
+        }
         Ok(())
     }
 
@@ -60,13 +63,25 @@ pub async fn start(cfg: &ServerConfig) -> anyhow::Result<Running> {
     cfg.check_exposure(&addr).map_err(anyhow::Error::msg)?;
     let mut api = cfg.api();
     api.auth.loopback = addr.ip().is_loopback();
-    let state = AppState::new(store.clone(), api);
-    // Connections wait in the listener's backlog until the runs are back.
-    let recovered = crate::recovery::recover(&state)
-        .await
-        .map_err(|e| anyhow::anyhow!("recovering runs: {e}"))?;
-    if recovered > 0 {
-        tracing::info!(runs = recovered, "recovered active runs");
+    let mut state = AppState::new(store.clone(), api);
+    match cfg.cluster() {
+        Some(cc) => {
+            // Runs are recovered by whichever replica takes them (crate::cluster).
+            let replica = cc.replica_id.clone();
+            let cluster = crate::cluster::Cluster::connect(cc).await?;
+            state = state.with_cluster(cluster.clone());
+            cluster.spawn(state.clone());
+            tracing::info!(%replica, "cluster replica");
+        }
+        None => {
+            // Connections wait in the listener's backlog until the runs are back.
+            let recovered = crate::recovery::recover(&state)
+                .await
+                .map_err(|e| anyhow::anyhow!("recovering runs: {e}"))?;
+            if recovered > 0 {
+                tracing::info!(runs = recovered, "recovered active runs");
+            }
+        }
     }
     let (tx, rx) = oneshot::channel::<()>();
     let router = app(state.clone());

@@ -497,6 +497,25 @@ impl Store {
         raws.into_iter().map(RawRun::parse).collect()
     }
 
+    /// The ids of every run still `"active"`, oldest first, without their counts (what a
+    /// cluster replica polls for runs without an owner).
+    pub async fn active_run_ids(&self) -> Result<Vec<String>, StoreError> {
+        let sql = "SELECT id FROM runs WHERE status = $1 ORDER BY created_at, id";
+        let ids = with_pool!(&self.inner.pool, pool => {
+            sqlx::query_scalar::<_, String>(sql).bind(STATUS_ACTIVE).fetch_all(pool).await?
+        });
+        Ok(ids)
+    }
+
+    /// A run's status (`active`, `ended`, `failed`), or None when there is no such run.
+    pub async fn run_status(&self, id: &str) -> Result<Option<String>, StoreError> {
+        let sql = "SELECT status FROM runs WHERE id = $1";
+        let status = with_pool!(&self.inner.pool, pool => {
+            sqlx::query_scalar::<_, String>(sql).bind(id).fetch_optional(pool).await?
+        });
+        Ok(status)
+    }
+
     /// Deletes a run and everything it owns (robots, records, snapshots, evaluations,
     /// training rows) in one transaction; false when there was no such run. Ordered after
     /// every append queued before it.

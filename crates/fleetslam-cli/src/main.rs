@@ -18,9 +18,11 @@ use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 
 mod chart;
+mod cluster_bench;
 mod experiment;
 mod history;
 mod learned;
+mod localcluster;
 mod localize;
 mod replay;
 
@@ -64,6 +66,9 @@ enum Command {
     ExportTraining(learned::ExportTrainingArgs),
     /// ns per landmark update of the EKF and MLP models, and whole runs with each.
     BenchUpdaters(learned::BenchArgs),
+    /// Cluster figures on this machine: records/s and ack latency with 1, 2, 3 replicas on a
+    /// 3-node NATS cluster, and failover time (needs nats-server and PostgreSQL).
+    ClusterBench(ClusterBenchArgs),
     /// Reproduce an experiment: `rtpf` (the real-time particle filter paper's), `paper`
     /// (the FastSLAM-MLP paper's four), `mrclam` (EKF against the learned updaters).
     Experiment {
@@ -206,6 +211,28 @@ struct ReplayArgs {
     /// for the dashboard's overlay and GET /v1/runs/{id}/evaluation.
     #[arg(long)]
     truth: Option<PathBuf>,
+}
+
+#[derive(Debug, Args)]
+struct ClusterBenchArgs {
+    /// A PostgreSQL server where the bench may create (and drops) its databases.
+    #[arg(long, default_value = "postgres://postgres@127.0.0.1:5432/test")]
+    database_url: String,
+    /// Replica counts to measure, comma-separated.
+    #[arg(long, default_value = "1,2,3", value_delimiter = ',')]
+    replicas: Vec<usize>,
+    /// Runs posting at once (3 simulated robots each).
+    #[arg(long, default_value_t = 6)]
+    runs: usize,
+    /// Simulated seconds per run.
+    #[arg(long, default_value_t = 60.0)]
+    duration: f64,
+    /// Records per request.
+    #[arg(long, default_value_t = 20)]
+    batch: usize,
+    /// The nats-server binary (default: where Debian's package puts it).
+    #[arg(long)]
+    nats_server: Option<PathBuf>,
 }
 
 #[derive(Debug, Args)]
@@ -398,6 +425,16 @@ fn main() -> Result<()> {
         Command::Train(a) => learned::cmd_train(a),
         Command::ExportTraining(a) => learned::cmd_export_training(a),
         Command::BenchUpdaters(a) => learned::cmd_bench_updaters(a),
+        Command::ClusterBench(a) => {
+            runtime()?.block_on(cluster_bench::run(cluster_bench::BenchOptions {
+                database_url: a.database_url,
+                replicas: a.replicas,
+                runs: a.runs,
+                duration_s: a.duration,
+                batch: a.batch,
+                nats_server: a.nats_server,
+            }))
+        }
         Command::Experiment { which } => match which {
             ExperimentCommand::Rtpf(a) => cmd_experiment_rtpf(a),
             ExperimentCommand::Paper(a) => {

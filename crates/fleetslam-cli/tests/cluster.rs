@@ -9,121 +9,24 @@
 //! and failed instead when FLEETSLAM_REQUIRE_CLUSTER=1 (as `.ci/run` sets).
 
 mod common;
+#[path = "../src/localcluster.rs"]
+mod localcluster;
 use common::ok;
+use localcluster::Proc;
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 const BIN: &str = env!("CARGO_BIN_EXE_fleetslam");
 const RUNS: usize = 6;
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-/// A child process killed (SIGKILL) on drop.
-struct Proc(Child);
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-impl Proc {
-    fn kill(&mut self) {
-        self.0.kill().unwrap(); // SIGKILL
-        self.0.wait().unwrap();
-    }
-}
-
-fn nats_server() -> Option<PathBuf> {
-    [
-        "/usr/sbin/nats-server",
-        "/usr/bin/nats-server",
-        "/usr/local/bin/nats-server",
-    ]
-    .into_iter()
-    .map(PathBuf::from)
-    .find(|p| p.exists())
-}
-
-/// Starts a 3-node JetStream cluster on loopback ports; returns the nodes and their client
-/// URLs.
-fn nats_cluster(bin: &Path, dir: &Path) -> (Vec<Proc>, Vec<String>) {
-    let client: Vec<u16> = (0..3).map(|_| free_port()).collect();
-    let routes: Vec<u16> = (0..3).map(|_| free_port()).collect();
-    let all_routes = routes
-        .iter()
-        .map(|p| format!("nats://127.0.0.1:{p}"))
-        .collect::<Vec<_>>()
-        .join(",");
-    let nodes = (0..3)
-        .map(|i| {
-            let store = dir.join(format!("nats{i}"));
-            std::fs::create_dir_all(&store).unwrap();
-            let log = std::fs::File::create(dir.join(format!("nats{i}.log"))).unwrap();
-            Proc(
-                Command::new(bin)
-                    .args(["-a", "127.0.0.1", "-p", &client[i].to_string(), "-js"])
-                    .args(["-sd", store.to_str().unwrap(), "-n", &format!("n{i}")])
-                    .args(["--cluster_name", "fleetslam"])
-                    .args(["--cluster", &format!("nats://127.0.0.1:{}", routes[i])])
-                    .args(["--routes", &all_routes])
-                    .stdout(Stdio::null())
-                    .stderr(log)
-                    .spawn()
-                    .unwrap(),
-            )
-        })
-        .collect();
-    let urls = client
-        .iter()
-        .map(|p| format!("nats://127.0.0.1:{p}"))
-        .collect();
-    (nodes, urls)
-}
-
-/// Starts a replica; returns once it listens (it has connected to NATS and set up the
-/// stream).
 fn replica(dir: &Path, i: usize, nats: &str, db: &str) -> (Proc, String) {
-    let bind = format!("127.0.0.1:{}", free_port());
-    let log = std::fs::File::create(dir.join(format!("replica{i}.log"))).unwrap();
-    let mut child = Command::new(BIN)
-        .args(["serve", "--bind", &bind, "--database-url", db])
-        .args([
-            "--cluster",
-            "--nats",
-            nats,
-            "--replica-id",
-            &format!("r{i}"),
-        ])
-        .args(["--stream-replicas", "3"])
-        .env("RUST_LOG", "fleetslam_server=info")
-        // A robot whose posts stall (this machine is loaded by 3 NATS nodes, 3 replicas
-        // and 18 robots) must not be taken for silent: records the stream acknowledged and
-        // the merge then refused as too old would be missing from the run.
-        .env("FLEETSLAM_REORDER_WINDOW_MS", "30000")
-        .stdout(Stdio::piped())
-        .stderr(log)
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    assert!(
-        line.contains("serving on"),
-        "replica {i} did not start: {line:?}; its log:\n{}",
-        std::fs::read_to_string(dir.join(format!("replica{i}.log"))).unwrap_or_default()
-    );
-    (Proc(child), format!("http://{bind}"))
+    // A robot whose posts stall (this machine is loaded by 3 NATS nodes, 3 replicas and
+    // 18 robots) must not be taken for silent: records the stream acknowledged and the
+    // merge then refused as too old would be missing from the run.
+    let env = [("FLEETSLAM_REORDER_WINDOW_MS", "30000")];
+    localcluster::replica(Path::new(BIN), dir, i, nats, db, 3, &env).unwrap()
 }
 
 /// A replay of one simulated log, and what it posted.
@@ -307,7 +210,7 @@ fn cluster_rounds(dir: &Path, nats: &Path, pg: &str) {
         .block_on(fleetslam_store::admin::create_postgres_database(pg, &name))
         .unwrap();
     let outcome = std::panic::catch_unwind(|| {
-        let (mut nodes, urls) = nats_cluster(nats, dir);
+        let (mut nodes, urls) = localcluster::nats_cluster(nats, dir, 3).unwrap();
         let nats_urls = urls.join(",");
         let mut replicas: Vec<(Proc, String)> =
             (0..3).map(|i| replica(dir, i, &nats_urls, &db)).collect();
@@ -342,7 +245,10 @@ fn cluster_rounds(dir: &Path, nats: &Path, pg: &str) {
 #[test]
 fn replicas_and_nats_nodes_fail_without_changing_a_result() {
     let required = std::env::var("FLEETSLAM_REQUIRE_CLUSTER").is_ok_and(|v| v == "1");
-    let (Some(nats), Ok(pg)) = (nats_server(), std::env::var("FLEETSLAM_TEST_POSTGRES_URL")) else {
+    let (Some(nats), Ok(pg)) = (
+        localcluster::nats_server(),
+        std::env::var("FLEETSLAM_TEST_POSTGRES_URL"),
+    ) else {
         assert!(
             !required,
             "FLEETSLAM_REQUIRE_CLUSTER=1 but nats-server or FLEETSLAM_TEST_POSTGRES_URL is missing"

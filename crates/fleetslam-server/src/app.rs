@@ -992,7 +992,7 @@ async fn register_robot_in_cluster(
     // The store's key refuses a robot registered meanwhile through another replica.
     state.store.add_robot(run, &row).await?;
     cluster
-        .publish_registration(run, &req.id, req.start.clone(), req.t0, &hash)
+        .publish_registration(run, &req.id, req.start, req.t0, &hash)
         .await?;
     info.tokens.write().await.insert(hash, req.id.clone());
     let mode = if req.start.is_some() {

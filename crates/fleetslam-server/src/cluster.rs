@@ -121,12 +121,11 @@ struct Position {
     published_ns: i128,
 }
 
-/// Counters of a replica, for the metrics and the README's figures.
+/// Counters of a replica (not yet among the Prometheus metrics).
 #[derive(Debug, Default)]
 pub struct ClusterStats {
     pub published: AtomicU64,
     pub duplicates: AtomicU64,
-    pub owned: AtomicU64,
     pub takeovers: AtomicU64,
     /// Records a run's owner refused after JetStream had acknowledged them (too old, time
     /// going back, a seq stored with other content): logged with the reason.

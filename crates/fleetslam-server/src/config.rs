@@ -408,6 +408,43 @@ mod tests {
     }
 
     #[test]
+    fn cluster_mode_needs_nats_and_a_shared_postgres() {
+        let env = |vars: &'static [(&'static str, &'static str)]| {
+            move |k: &str| {
+                vars.iter()
+                    .find(|(n, _)| *n == k)
+                    .map(|(_, v)| v.to_string())
+            }
+        };
+        let c = ServerConfig::load(None, env(&[("FLEETSLAM_CLUSTER", "true")])).unwrap();
+        assert!(c.validate().unwrap_err().contains("nats_url"));
+        let c = ServerConfig::load(
+            None,
+            env(&[
+                ("FLEETSLAM_CLUSTER", "true"),
+                ("FLEETSLAM_NATS_URL", "nats://a:4222"),
+            ]),
+        )
+        .unwrap();
+        assert!(c.validate().unwrap_err().contains("PostgreSQL"));
+        let c = ServerConfig::load(
+            None,
+            env(&[
+                ("FLEETSLAM_CLUSTER", "true"),
+                ("FLEETSLAM_NATS_URL", "nats://a:4222, nats://b:4222"),
+                ("FLEETSLAM_DATABASE_URL", "postgres://db/fleetslam"),
+                ("FLEETSLAM_REPLICA_ID", "r7"),
+            ]),
+        )
+        .unwrap();
+        c.validate().unwrap();
+        let cc = c.cluster().unwrap();
+        assert_eq!(cc.nats_urls, ["nats://a:4222", "nats://b:4222"]);
+        assert_eq!(cc.replica_id, "r7");
+        assert!(ServerConfig::default().cluster().is_none());
+    }
+
+    #[test]
     fn example_config_parses() {
         let path =
             std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fleetslam.example.toml");

@@ -143,7 +143,15 @@ async fn a_panicking_record_is_quarantined_live_and_the_run_goes_on() {
         snapshot_every: 25,
         ..CoordinatorConfig::default()
     };
-    let handle = coordinator::spawn("p".into(), filter, store.clone(), coord, None, None);
+    let handle = coordinator::spawn(
+        "p".into(),
+        filter,
+        store.clone(),
+        coord,
+        None,
+        None,
+        coordinator::Clock::Wall,
+    );
     let mut events = handle.events.subscribe();
     let seen = tokio::spawn(async move {
         let mut quarantined = Vec::new();

@@ -31,7 +31,15 @@ async fn a_state_published_lazily_equals_the_eager_one_and_is_built_only_when_re
         ..CoordinatorConfig::default()
     };
     let particle_sample = coord.particle_sample;
-    let handle = coordinator::spawn("lazy".into(), filter, store.clone(), coord, None, None);
+    let handle = coordinator::spawn(
+        "lazy".into(),
+        filter,
+        store.clone(),
+        coord,
+        None,
+        None,
+        coordinator::Clock::Wall,
+    );
     for r in &log.header.robots {
         twin.add_robot(&r.id, &r.start.unwrap(), r.t0.unwrap_or(0.0))
             .unwrap();
@@ -223,7 +231,15 @@ async fn snapshots_taken_while_released_records_wait_for_the_filter_cover_only_a
         snapshot_every: 3,
         ..CoordinatorConfig::default()
     };
-    let handle = coordinator::spawn("snap".into(), filter, store.clone(), coord, None, None);
+    let handle = coordinator::spawn(
+        "snap".into(),
+        filter,
+        store.clone(),
+        coord,
+        None,
+        None,
+        coordinator::Clock::Wall,
+    );
     register_header_robots(&handle, &log).await;
     // One robot's records first, then the other's: the merge releases them in large sets.
     for r in &log.header.robots {

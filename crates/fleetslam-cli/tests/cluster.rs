@@ -183,6 +183,30 @@ fn wait_for_progress(replays: &[Replay], server: &str) {
     }
 }
 
+/// Opens the run's websocket on a replica and waits for a state.
+fn live_state(server: &str, run: &str) {
+    use futures::StreamExt;
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let url = format!("{}/v1/runs/{run}/live", server.replace("http://", "ws://"));
+    rt.block_on(async {
+        let (mut ws, _) = tokio_tungstenite::connect_async(url.as_str())
+            .await
+            .unwrap_or_else(|e| panic!("{url}: {e}"));
+        let got = tokio::time::timeout(Duration::from_secs(10), async {
+            while let Some(m) = ws.next().await {
+                let text = m.unwrap().into_text().unwrap();
+                let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+                if v["type"] == "state" && v["state"]["run"] == run {
+                    return true;
+                }
+            }
+            false
+        })
+        .await;
+        assert_eq!(got, Ok(true), "{url}: no state of the run");
+    });
+}
+
 fn logs(dir: &Path) -> String {
     let mut out = String::new();
     for e in std::fs::read_dir(dir).unwrap().flatten() {
@@ -223,6 +247,10 @@ fn cluster_rounds(dir: &Path, nats: &Path, pg: &str) {
         // Round 1: a replica dies in the middle.
         let replays = start_replays(dir, "replica", &servers);
         wait_for_progress(&replays, &replicas[1].1);
+        // Any replica serves the live view: its owner's own, the others relay it.
+        for (_, url) in &replicas {
+            live_state(url, &replays[0].run);
+        }
         replicas[0].0.kill();
         check_runs(dir, "replica", replays, &replicas[1].1);
 

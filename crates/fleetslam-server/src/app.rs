@@ -853,6 +853,7 @@ impl ClusterRun {
         match state.store.run_status(run).await?.as_deref() {
             Some("active") => {}
             Some(_) => {
+                cluster.runs.write().await.remove(run);
                 let row = state.store.get_run(run).await?;
                 return Err(match row {
                     Some(row) => api_history::not_running(&row),

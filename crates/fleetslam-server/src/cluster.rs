@@ -348,12 +348,12 @@ impl Cluster {
             .await?;
         let deadline = Instant::now() + self.cfg.end_timeout;
         loop {
-            let row = state
+            let status = state
                 .store
-                .get_run(run)
+                .run_status(run)
                 .await?
                 .ok_or_else(|| ApiError::NotFound(format!("no run {run}")))?;
-            match row.status.as_str() {
+            match status.as_str() {
                 "ended" => return Ok(()),
                 "active" if Instant::now() < deadline => {
                     tokio::time::sleep(Duration::from_millis(50)).await
@@ -368,7 +368,14 @@ impl Cluster {
                         retry_after_s: 5,
                     });
                 }
-                _ => return Err(crate::api_history::not_running(&row)),
+                _ => {
+                    let row = state
+                        .store
+                        .get_run(run)
+                        .await?
+                        .ok_or_else(|| ApiError::NotFound(format!("no run {run}")))?;
+                    return Err(crate::api_history::not_running(&row));
+                }
             }
         }
     }
@@ -442,22 +449,21 @@ impl Cluster {
             if owned.contains(&id) {
                 continue;
             }
-            let row = RunId { id };
-            match self.leases.entry(&row.id).await {
+            match self.leases.entry(&id).await {
                 Ok(Some(e)) if e.operation == kv::Operation::Put => {
-                    self.orphans.lock().await.remove(&row.id);
+                    self.orphans.lock().await.remove(&id);
                     continue;
                 }
                 Ok(_) => {}
                 Err(e) => {
-                    tracing::warn!(run = %row.id, error = %e, "reading a lease");
+                    tracing::warn!(run = %id, error = %e, "reading a lease");
                     continue;
                 }
             }
             let waited = {
                 let mut orphans = self.orphans.lock().await;
                 orphans
-                    .entry(row.id.clone())
+                    .entry(id.clone())
                     .or_insert_with(Instant::now)
                     .elapsed()
             };
@@ -466,24 +472,24 @@ impl Cluster {
             }
             let mine = self.owned.lock().await.len();
             if waited < self.cfg.lease_ttl
-                && !self.chosen(&row.id, loads.as_ref().expect("set above"), mine)
+                && !self.chosen(&id, loads.as_ref().expect("set above"), mine)
             {
                 continue;
             }
             match self
                 .leases
-                .create(&row.id, self.cfg.replica_id.clone().into())
+                .create(&id, self.cfg.replica_id.clone().into())
                 .await
             {
                 Ok(revision) => {
-                    self.orphans.lock().await.remove(&row.id);
+                    self.orphans.lock().await.remove(&id);
                     self.stats.takeovers.fetch_add(1, Ordering::Relaxed);
-                    tracing::info!(run = %row.id, replica = %self.cfg.replica_id, "took the run");
+                    tracing::info!(run = %id, replica = %self.cfg.replica_id, "took the run");
                     let me = self.clone();
-                    let (st, run) = (state.clone(), row.id.clone());
+                    let (st, run) = (state.clone(), id.clone());
                     let mut owned = self.owned.lock().await;
                     let task = tokio::spawn(async move { me.own(st, run, revision).await });
-                    owned.insert(row.id.clone(), task.abort_handle());
+                    owned.insert(id.clone(), task.abort_handle());
                     drop(owned);
                     self.heartbeat().await;
                     if let Some(l) = loads.as_mut() {
@@ -491,7 +497,7 @@ impl Cluster {
                     }
                 }
                 Err(e) if e.kind() == kv::CreateErrorKind::AlreadyExists => {}
-                Err(e) => tracing::warn!(run = %row.id, error = %e, "taking a lease"),
+                Err(e) => tracing::warn!(run = %id, error = %e, "taking a lease"),
             }
         }
         Ok(())
@@ -807,11 +813,6 @@ impl Cluster {
     pub async fn owned_runs(&self) -> usize {
         self.owned.lock().await.len()
     }
-}
-
-/// A run id (named like a store row's, for the claim loop).
-struct RunId {
-    id: String,
 }
 
 /// Aborts a task when dropped.

@@ -8,6 +8,10 @@
 //! Every run's snapshots, result and log stay in the store ([`history`], [`api_history`]):
 //! a restarted server recovers its active runs bit for bit ([`recovery`]), and finished runs
 //! can be scrubbed through, exported, re-run with another configuration and deleted.
+//!
+//! Several servers can share the runs as replicas of a cluster ([`cluster`]): records go
+//! through NATS JetStream, each run is owned by one replica at a time through a lease, and
+//! a replica that dies hands its runs to another, which recovers them from PostgreSQL.
 
 pub mod api_history;
 pub mod app;

@@ -183,6 +183,37 @@ fn wait_for_progress(replays: &[Replay], server: &str) {
     }
 }
 
+/// A replica's cluster counter from `GET /metrics`.
+fn cluster_counter(server: &str, counter: &str) -> i64 {
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let text = rt.block_on(async {
+        reqwest::get(format!("{server}/metrics"))
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap()
+    });
+    let key = format!("fleetslam_cluster{{counter=\"{counter}\"}} ");
+    text.lines()
+        .find_map(|l| l.strip_prefix(&key))
+        .unwrap_or_else(|| panic!("no {key} in {server}/metrics"))
+        .trim()
+        .parse()
+        .unwrap()
+}
+
+/// No record the stream acknowledged was refused by a run's owner, and the live replicas
+/// published records.
+fn check_counters(servers: &[&str]) {
+    let mut published = 0;
+    for s in servers {
+        assert_eq!(cluster_counter(s, "refused_after_ack"), 0, "{s}");
+        published += cluster_counter(s, "published");
+    }
+    assert!(published > 0, "no replica published a record");
+}
+
 /// Opens the run's websocket on a replica and waits for a state.
 fn live_state(server: &str, run: &str) {
     use futures::StreamExt;
@@ -253,12 +284,14 @@ fn cluster_rounds(dir: &Path, nats: &Path, pg: &str) {
         }
         replicas[0].0.kill();
         check_runs(dir, "replica", replays, &replicas[1].1);
+        check_counters(&[&replicas[1].1, &replicas[2].1]);
 
         // Round 2: a NATS node dies in the middle (the two replicas left go on).
         let replays = start_replays(dir, "nats", &servers);
         wait_for_progress(&replays, &replicas[1].1);
         nodes[2].kill();
         check_runs(dir, "nats", replays, &replicas[2].1);
+        check_counters(&[&replicas[1].1, &replicas[2].1]);
         drop(replicas);
         drop(nodes);
     });

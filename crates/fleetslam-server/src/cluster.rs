@@ -121,7 +121,7 @@ struct Position {
     published_ns: i128,
 }
 
-/// Counters of a replica (not yet among the Prometheus metrics).
+/// Counters of a replica (`GET /metrics`: `fleetslam_cluster{counter="..."}`).
 #[derive(Debug, Default)]
 pub struct ClusterStats {
     pub published: AtomicU64,

@@ -45,6 +45,13 @@ pub struct Metrics {
     ess: Family<RunLabels, FloatGauge>,
     applied: Family<RunLabels, Gauge>,
     step_seconds: Family<RunLabels, FloatGauge>,
+    /// Cluster mode ([`crate::cluster::ClusterStats`]); zero on a single server.
+    cluster: Family<ClusterLabels, Gauge>,
+}
+
+#[derive(Debug, Clone, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct ClusterLabels {
+    counter: &'static str,
 }
 
 impl Default for Metrics {
@@ -98,8 +105,18 @@ impl Default for Metrics {
             "Median filter step time over the last state publication interval",
             step_seconds.clone(),
         );
+        let cluster = Family::<ClusterLabels, Gauge>::default();
+        registry.register(
+            "cluster",
+            "Cluster mode, since this replica started: records it published (published), \
+             repeats JetStream deduplicated (duplicate), runs it took (takeovers), runs it owns \
+             (owned), and records the stream acknowledged that a run it owns refused as too \
+             old (refused_after_ack)",
+            cluster.clone(),
+        );
         Self {
             registry,
+            cluster,
             requests,
             latency,
             runs_active,
@@ -167,6 +184,21 @@ pub async fn metrics(State(state): State<AppState>) -> Response {
         m.step_seconds.get_or_create(&l).set(s.step_ms / 1e3);
     }
     drop(runs);
+    if let Some(c) = &state.cluster {
+        use std::sync::atomic::Ordering::Relaxed;
+        let st = &c.stats;
+        for (counter, v) in [
+            ("published", st.published.load(Relaxed)),
+            ("duplicate", st.duplicates.load(Relaxed)),
+            ("takeovers", st.takeovers.load(Relaxed)),
+            ("refused_after_ack", st.refused_after_ack.load(Relaxed)),
+            ("owned", c.owned_runs().await as u64),
+        ] {
+            m.cluster
+                .get_or_create(&ClusterLabels { counter })
+                .set(v as i64);
+        }
+    }
     let mut body = String::new();
     if let Err(e) = encode(&mut body, &m.registry) {
         return crate::error::ApiError::internal(anyhow::anyhow!("encoding metrics: {e}"))

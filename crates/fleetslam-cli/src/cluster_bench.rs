@@ -142,6 +142,24 @@ struct Cluster {
     db_name: String,
 }
 
+impl Cluster {
+    /// The replicas' base URLs, comma-separated (`replay --server`).
+    fn servers(&self) -> String {
+        self.replicas
+            .iter()
+            .map(|(_, u)| u.as_str())
+            .collect::<Vec<_>>()
+            .join(",")
+    }
+
+    /// Stops the replicas and drops the database.
+    async fn stop(self, database_url: &str) -> Result<()> {
+        drop(self.replicas);
+        fleetslam_store::admin::drop_postgres_database(database_url, &self.db_name).await?;
+        Ok(())
+    }
+}
+
 async fn start_cluster(
     exe: &Path,
     nats: &Path,
@@ -199,12 +217,7 @@ pub async fn run(o: BenchOptions) -> Result<()> {
     for &n in &o.replicas {
         let dir = tmp.path().join(format!("cluster{n}"));
         let c = start_cluster(&exe, &nats, &dir, &o, n).await?;
-        let servers = c
-            .replicas
-            .iter()
-            .map(|(_, u)| u.clone())
-            .collect::<Vec<_>>()
-            .join(",");
+        let servers = c.servers();
         let started = Instant::now();
         let rs = replays(&exe, &logs, &servers, &["--fast"], o.batch)?;
         let sums = finish(rs)?;
@@ -219,19 +232,13 @@ pub async fn run(o: BenchOptions) -> Result<()> {
             acked as f64 / slowest.max(1e-9),
             p50[p50.len() / 2]
         );
-        drop(c.replicas);
-        fleetslam_store::admin::drop_postgres_database(&o.database_url, &c.db_name).await?;
+        c.stop(&o.database_url).await?;
     }
 
     // Failover: paced robots, one replica killed.
     let dir = tmp.path().join("failover");
     let mut c = start_cluster(&exe, &nats, &dir, &o, 3).await?;
-    let servers = c
-        .replicas
-        .iter()
-        .map(|(_, u)| u.clone())
-        .collect::<Vec<_>>()
-        .join(",");
+    let servers = c.servers();
     let rs = replays(&exe, &logs, &servers, &["--speed", "5"], 5)?;
     tokio::time::sleep(Duration::from_secs(3)).await;
     let killed_at = now_of_day();
@@ -272,7 +279,5 @@ pub async fn run(o: BenchOptions) -> Result<()> {
             .collect::<Vec<_>>()
             .join(", ")
     );
-    drop(c.replicas);
-    fleetslam_store::admin::drop_postgres_database(&o.database_url, &c.db_name).await?;
-    Ok(())
+    c.stop(&o.database_url).await
 }

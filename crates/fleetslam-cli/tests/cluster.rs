@@ -11,7 +11,7 @@
 mod common;
 #[path = "../src/localcluster.rs"]
 mod localcluster;
-use common::ok;
+use common::{assert_equals_offline, assert_stored_once, ok};
 use localcluster::Proc;
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
@@ -110,44 +110,10 @@ fn check_runs(dir: &Path, round: &str, replays: Vec<Replay>, server: &str) {
             "--out",
             exported.to_str().unwrap(),
         ]);
-        let stored = std::fs::read_to_string(exported.join("log.ndjson")).unwrap();
-        let mut keys: Vec<(String, u64)> = stored
-            .lines()
-            .skip(1)
-            .map(|l| {
-                let v: serde_json::Value = serde_json::from_str(l).unwrap();
-                (
-                    v["robot"].as_str().unwrap().to_string(),
-                    v["seq"].as_u64().unwrap(),
-                )
-            })
-            .collect();
-        assert_eq!(keys.len(), n, "run {k}: every acknowledged record stored");
-        keys.sort();
-        keys.dedup();
-        assert_eq!(keys.len(), n, "run {k}: a record is stored twice");
+        let what = format!("{round} run {k}");
+        assert_stored_once(&exported, n, &what);
         let offline = dir.join(format!("{round}-offline{k}"));
-        ok(&[
-            "run",
-            r.log.to_str().unwrap(),
-            "--particles",
-            "50",
-            "--seed",
-            "5",
-            "--out",
-            offline.to_str().unwrap(),
-        ]);
-        let mut compared = 0;
-        for entry in std::fs::read_dir(&offline).unwrap() {
-            let name = entry.unwrap().file_name().to_string_lossy().into_owned();
-            if name.ends_with(".tum") || name == "landmarks.csv" {
-                let want = std::fs::read_to_string(offline.join(&name)).unwrap();
-                let got = std::fs::read_to_string(exported.join(&name)).unwrap();
-                assert!(want == got, "run {k}: {name} differs from the offline run");
-                compared += 1;
-            }
-        }
-        assert_eq!(compared, 4, "3 trajectories and the landmarks");
+        assert_equals_offline(&r.log, &exported, &offline, &what);
     }
 }
 

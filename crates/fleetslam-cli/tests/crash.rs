@@ -5,7 +5,7 @@
 //! FLEETSLAM_TEST_POSTGRES_URL is set.
 
 mod common;
-use common::{ok, serve};
+use common::{assert_equals_offline, assert_stored_once, ok, serve};
 use std::io::{BufRead, BufReader};
 use std::path::Path;
 use std::process::{Command, Stdio};
@@ -126,44 +126,8 @@ fn crash_and_resume(dir: &Path, store: &[&str]) {
         "--out",
         exported.to_str().unwrap(),
     ]);
-    let stored = std::fs::read_to_string(exported.join("log.ndjson")).unwrap();
-    let mut keys: Vec<(String, u64)> = stored
-        .lines()
-        .skip(1)
-        .map(|l| {
-            let v: serde_json::Value = serde_json::from_str(l).unwrap();
-            (
-                v["robot"].as_str().unwrap().to_string(),
-                v["seq"].as_u64().unwrap(),
-            )
-        })
-        .collect();
-    assert_eq!(keys.len(), records);
-    keys.sort();
-    keys.dedup();
-    assert_eq!(keys.len(), records, "a record is stored twice");
-    let offline = dir.join("offline");
-    ok(&[
-        "run",
-        log.to_str().unwrap(),
-        "--particles",
-        "50",
-        "--seed",
-        "5",
-        "--out",
-        offline.to_str().unwrap(),
-    ]);
-    let mut compared = 0;
-    for entry in std::fs::read_dir(&offline).unwrap() {
-        let name = entry.unwrap().file_name().to_string_lossy().into_owned();
-        if name.ends_with(".tum") || name == "landmarks.csv" {
-            let want = std::fs::read_to_string(offline.join(&name)).unwrap();
-            let got = std::fs::read_to_string(exported.join(&name)).unwrap();
-            assert!(want == got, "{name} differs from the uninterrupted run");
-            compared += 1;
-        }
-    }
-    assert_eq!(compared, 4, "3 trajectories and the landmarks");
+    assert_stored_once(&exported, records, "the crashed run");
+    assert_equals_offline(&log, &exported, &dir.join("offline"), "the crashed run");
 }
 
 #[test]

@@ -218,6 +218,19 @@ fn new_token() -> String {
 /// The artifact that holds a run's enrollment token hash (never served).
 pub(crate) const ENROLLMENT: &str = "enrollment";
 
+/// The hash of a run's enrollment token, as stored in [`ENROLLMENT`].
+pub(crate) async fn stored_enrollment(
+    store: &Store,
+    run: &str,
+) -> Result<Option<String>, ApiError> {
+    Ok(match store.get_artifact(run, ENROLLMENT).await? {
+        Some(body) => serde_json::from_str::<serde_json::Value>(&body)
+            .ok()
+            .and_then(|v| v["token_sha256"].as_str().map(str::to_string)),
+        None => None,
+    })
+}
+
 /// The artifact that holds what a run was created with beyond its filter configuration: a
 /// recovery before the run's first snapshot (and a cluster replica that takes a new run)
 /// starts from it.
@@ -576,11 +589,32 @@ pub(crate) async fn register_robot(
         return register_robot_in_cluster(&state, &run, &headers, &body).await;
     }
     let live = state.live(&run).await?;
+    let req = check_registration(&state, &headers, &body, live.enrollment.as_deref())?;
+    {
+        let tokens = live.tokens.read().await;
+        check_robot_is_new(&state, &run, &req.id, tokens.values())?;
+    }
+    let (token, row) = robot_row(&req)?;
+    let hash = row.token_hash.clone();
+    // The coordinator checks the id again, stores the robot, then adds it to the filter.
+    live.handle.add_robot(row, req.start, req.t0).await?;
+    live.tokens.write().await.insert(hash, req.id.clone());
+    Ok(registered(req, token))
+}
+
+/// Checks a registration before anything is stored: the admin token or the run's
+/// enrollment token (when the server has an admin token), then the body (id, t0, start).
+fn check_registration(
+    state: &AppState,
+    headers: &HeaderMap,
+    body: &[u8],
+    enrollment: Option<&str>,
+) -> Result<RegisterRobot, ApiError> {
     let auth = &state.config.auth;
     if auth.admin_token.is_some() {
-        let given = crate::auth::bearer(&headers);
-        let admin = crate::auth::is_admin(auth, &headers);
-        let enrolled = match (given, &live.enrollment) {
+        let given = crate::auth::bearer(headers);
+        let admin = crate::auth::is_admin(auth, headers);
+        let enrolled = match (given, enrollment) {
             (Some(g), Some(hash)) => crate::auth::hash_matches(g, hash),
             _ => false,
         };
@@ -592,9 +626,10 @@ pub(crate) async fn register_robot(
             ));
         }
     }
-    let req: RegisterRobot = parse_json("robot", &body)?;
-    let limits = &state.config.limits;
-    limits
+    let req: RegisterRobot = parse_json("robot", body)?;
+    state
+        .config
+        .limits
         .check_name("id", &req.id)
         .map_err(ApiError::BadRequest)?;
     if let Some(t0) = req.t0
@@ -608,23 +643,34 @@ pub(crate) async fn register_robot(
         crate::limits::check_start(start)
             .map_err(|e| ApiError::BadRequest(format!("start: {e}")))?;
     }
-    {
-        let tokens = live.tokens.read().await;
-        if tokens.values().any(|r| *r == req.id) {
-            return Err(ApiError::Conflict(format!(
-                "robot {:?} is already registered in this run",
-                req.id
-            )));
-        }
-        if tokens.len() >= limits.max_robots_per_run {
-            return Err(ApiError::Conflict(format!(
-                "run {run} has {} robots, the most a run takes (max_robots_per_run)",
-                tokens.len()
-            )));
-        }
+    Ok(req)
+}
+
+/// 409 when the run already has robot `id`, or as many robots as a run takes.
+fn check_robot_is_new<'a>(
+    state: &AppState,
+    run: &str,
+    id: &str,
+    robots: impl ExactSizeIterator<Item = &'a String>,
+) -> Result<(), ApiError> {
+    let n = robots.len();
+    let mut robots = robots;
+    if robots.any(|r| r == id) {
+        return Err(ApiError::Conflict(format!(
+            "robot {id:?} is already registered in this run"
+        )));
     }
+    if n >= state.config.limits.max_robots_per_run {
+        return Err(ApiError::Conflict(format!(
+            "run {run} has {n} robots, the most a run takes (max_robots_per_run)"
+        )));
+    }
+    Ok(())
+}
+
+/// A new token for the robot, and the row that stores it (with the token's hash only).
+fn robot_row(req: &RegisterRobot) -> Result<(String, NewRobot), ApiError> {
     let token = new_token();
-    let hash = token_hash(&token);
     let row = NewRobot {
         robot_id: req.id.clone(),
         start: req
@@ -633,25 +679,27 @@ pub(crate) async fn register_robot(
             .map(serde_json::to_value)
             .transpose()
             .map_err(ApiError::internal)?,
-        token_hash: hash.clone(),
+        token_hash: token_hash(&token),
         t0: req.t0,
     };
-    // The coordinator checks the id again, stores the robot, then adds it to the filter.
-    live.handle.add_robot(row, req.start, req.t0).await?;
-    live.tokens.write().await.insert(hash, req.id.clone());
+    Ok((token, row))
+}
+
+/// The answer to a registration.
+fn registered(req: RegisterRobot, token: String) -> (StatusCode, Json<RobotRegistered>) {
     let mode = if req.start.is_some() {
         "mapping"
     } else {
         "localizing"
     };
-    Ok((
+    (
         StatusCode::CREATED,
         Json(RobotRegistered {
             robot: req.id,
             token,
             mode,
         }),
-    ))
+    )
 }
 
 #[derive(Debug, Serialize, utoipa::ToSchema)]
@@ -716,20 +764,47 @@ pub(crate) async fn post_observations(
         return post_observations_in_cluster(&state, &run, &headers, &body).await;
     }
     let live = state.live(&run).await?;
-    let token = crate::auth::bearer(&headers).ok_or_else(|| {
-        ApiError::Unauthorized(
-            "send the robot's token as `Authorization: Bearer <token>` (from registration)".into(),
-        )
-    })?;
     let robot = live
         .tokens
         .read()
         .await
-        .get(&token_hash(token))
+        .get(&token_hash(robot_token(&headers)?))
         .cloned()
-        .ok_or_else(|| ApiError::Unauthorized("unknown robot token for this run".into()))?;
+        .ok_or_else(unknown_robot_token)?;
+    let records = check_records(&state, &headers, &body, &robot, &live.config)?;
+    let acks = live.handle.ingest(records).await?;
+    let status = if acks.iter().any(|a| a.status == "rejected") {
+        StatusCode::CONFLICT
+    } else {
+        StatusCode::OK
+    };
+    Ok((status, Json(IngestResponse { acks })).into_response())
+}
+
+/// The robot token a POST of records carries.
+fn robot_token(headers: &HeaderMap) -> Result<&str, ApiError> {
+    crate::auth::bearer(headers).ok_or_else(|| {
+        ApiError::Unauthorized(
+            "send the robot's token as `Authorization: Bearer <token>` (from registration)".into(),
+        )
+    })
+}
+
+fn unknown_robot_token() -> ApiError {
+    ApiError::Unauthorized("unknown robot token for this run".into())
+}
+
+/// Parses the records of a POST by `robot` and checks each against the run's models and
+/// the server's limits; the first bad one is the error.
+fn check_records(
+    state: &AppState,
+    headers: &HeaderMap,
+    body: &[u8],
+    robot: &str,
+    config: &FilterConfig,
+) -> Result<Vec<Record>, ApiError> {
     let limits = &state.config.limits;
-    let records = parse_records(&headers, &body, limits.max_records_per_request)?;
+    let records = parse_records(headers, body, limits.max_records_per_request)?;
     if records.is_empty() {
         return Err(ApiError::BadRequest("no records in the body".into()));
     }
@@ -741,17 +816,11 @@ pub(crate) async fn post_observations(
                 crate::limits::truncate(&r.robot, 80)
             )));
         }
-        r.validate(live.config.landmark_kind, live.config.motion_model)
+        r.validate(config.landmark_kind, config.motion_model)
             .and_then(|()| limits.check_record(r))
             .map_err(|e| ApiError::BadRequest(format!("record {i} (seq {}): {e}", r.seq)))?;
     }
-    let acks = live.handle.ingest(records).await?;
-    let status = if acks.iter().any(|a| a.status == "rejected") {
-        StatusCode::CONFLICT
-    } else {
-        StatusCode::OK
-    };
-    Ok((status, Json(IngestResponse { acks })).into_response())
+    Ok(records)
 }
 
 /// `GET /v1/runs/{run}/live` (websocket): states and events.
@@ -876,12 +945,7 @@ impl ClusterRun {
             .ok_or_else(|| ApiError::NotFound(format!("no run {run}")))?;
         let config: FilterConfig = serde_json::from_value(row.config)
             .map_err(|e| ApiError::internal(anyhow::anyhow!("stored config: {e}")))?;
-        let enrollment = match state.store.get_artifact(run, ENROLLMENT).await? {
-            Some(body) => serde_json::from_str::<serde_json::Value>(&body)
-                .ok()
-                .and_then(|v| v["token_sha256"].as_str().map(str::to_string)),
-            None => None,
-        };
+        let enrollment = stored_enrollment(&state.store, run).await?;
         let info = Arc::new(ClusterRun {
             config,
             enrollment,
@@ -917,7 +981,7 @@ impl ClusterRun {
             .await
             .get(&hash)
             .cloned()
-            .ok_or_else(|| ApiError::Unauthorized("unknown robot token for this run".into()))
+            .ok_or_else(unknown_robot_token)
     }
 }
 
@@ -932,83 +996,20 @@ async fn register_robot_in_cluster(
 ) -> Result<(StatusCode, Json<RobotRegistered>), ApiError> {
     let cluster = state.cluster.as_ref().expect("cluster mode");
     let info = ClusterRun::load(state, run).await?;
-    let auth = &state.config.auth;
-    if auth.admin_token.is_some() {
-        let given = crate::auth::bearer(headers);
-        let admin = crate::auth::is_admin(auth, headers);
-        let enrolled = match (given, &info.enrollment) {
-            (Some(g), Some(hash)) => crate::auth::hash_matches(g, hash),
-            _ => false,
-        };
-        if !(admin | enrolled) {
-            return Err(ApiError::Unauthorized(
-                "registering a robot needs the admin token or the run's enrollment token \
-                 (`enrollment_token` from POST /v1/runs): send `Authorization: Bearer <token>`"
-                    .into(),
-            ));
-        }
-    }
-    let req: RegisterRobot = parse_json("robot", body)?;
-    let limits = &state.config.limits;
-    limits
-        .check_name("id", &req.id)
-        .map_err(ApiError::BadRequest)?;
-    if let Some(t0) = req.t0
-        && !t0.is_finite()
-    {
-        return Err(ApiError::BadRequest(format!(
-            "t0 must be a finite time in seconds, got {t0}"
-        )));
-    }
-    if let Some(start) = &req.start {
-        crate::limits::check_start(start)
-            .map_err(|e| ApiError::BadRequest(format!("start: {e}")))?;
-    }
+    let req = check_registration(state, headers, body, info.enrollment.as_deref())?;
     let robots = state.store.robots(run).await?;
-    if robots.iter().any(|r| r.robot_id == req.id) {
-        return Err(ApiError::Conflict(format!(
-            "robot {:?} is already registered in this run",
-            req.id
-        )));
-    }
-    if robots.len() >= limits.max_robots_per_run {
-        return Err(ApiError::Conflict(format!(
-            "run {run} has {} robots, the most a run takes (max_robots_per_run)",
-            robots.len()
-        )));
-    }
-    let token = new_token();
-    let hash = token_hash(&token);
-    let row = NewRobot {
-        robot_id: req.id.clone(),
-        start: req
-            .start
-            .as_ref()
-            .map(serde_json::to_value)
-            .transpose()
-            .map_err(ApiError::internal)?,
-        token_hash: hash.clone(),
-        t0: req.t0,
-    };
+    check_robot_is_new(state, run, &req.id, robots.iter().map(|r| &r.robot_id))?;
+    let (token, row) = robot_row(&req)?;
     // The store's key refuses a robot registered meanwhile through another replica.
     state.store.add_robot(run, &row).await?;
     cluster
-        .publish_registration(run, &req.id, req.start, req.t0, &hash)
+        .publish_registration(run, &req.id, req.start, req.t0, &row.token_hash)
         .await?;
-    info.tokens.write().await.insert(hash, req.id.clone());
-    let mode = if req.start.is_some() {
-        "mapping"
-    } else {
-        "localizing"
-    };
-    Ok((
-        StatusCode::CREATED,
-        Json(RobotRegistered {
-            robot: req.id,
-            token,
-            mode,
-        }),
-    ))
+    info.tokens
+        .write()
+        .await
+        .insert(row.token_hash, req.id.clone());
+    Ok(registered(req, token))
 }
 
 /// Checks records as [`post_observations`] does and publishes them to the run's subject;
@@ -1021,29 +1022,8 @@ async fn post_observations_in_cluster(
 ) -> Result<Response, ApiError> {
     let cluster = state.cluster.as_ref().expect("cluster mode");
     let info = ClusterRun::load(state, run).await?;
-    let token = crate::auth::bearer(headers).ok_or_else(|| {
-        ApiError::Unauthorized(
-            "send the robot's token as `Authorization: Bearer <token>` (from registration)".into(),
-        )
-    })?;
-    let robot = info.robot(state, run, token).await?;
-    let limits = &state.config.limits;
-    let records = parse_records(headers, body, limits.max_records_per_request)?;
-    if records.is_empty() {
-        return Err(ApiError::BadRequest("no records in the body".into()));
-    }
-    for (i, r) in records.iter().enumerate() {
-        if r.robot != robot {
-            return Err(ApiError::Forbidden(format!(
-                "record {i} is for robot {:?} but the token is robot {robot:?}'s: a robot \
-                 posts only its own records",
-                crate::limits::truncate(&r.robot, 80)
-            )));
-        }
-        r.validate(info.config.landmark_kind, info.config.motion_model)
-            .and_then(|()| limits.check_record(r))
-            .map_err(|e| ApiError::BadRequest(format!("record {i} (seq {}): {e}", r.seq)))?;
-    }
+    let robot = info.robot(state, run, robot_token(headers)?).await?;
+    let records = check_records(state, headers, body, &robot, &info.config)?;
     let acks = cluster.publish_records(run, &records).await?;
     Ok((StatusCode::OK, Json(IngestResponse { acks })).into_response())
 }

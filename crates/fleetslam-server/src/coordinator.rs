@@ -348,14 +348,7 @@ impl RunHandle {
         start: Option<PoseGaussian>,
         t0: Option<f64>,
     ) -> Result<(), ApiError> {
-        self.call(|reply| Command::AddRobot {
-            row,
-            start,
-            t0,
-            stored: false,
-            reply,
-        })
-        .await
+        self.add_robot_row(row, start, t0, false).await
     }
 
     /// Adds a robot whose row a cluster replica has already stored (see
@@ -366,11 +359,21 @@ impl RunHandle {
         start: Option<PoseGaussian>,
         t0: Option<f64>,
     ) -> Result<(), ApiError> {
+        self.add_robot_row(row, start, t0, true).await
+    }
+
+    async fn add_robot_row(
+        &self,
+        row: NewRobot,
+        start: Option<PoseGaussian>,
+        t0: Option<f64>,
+        stored: bool,
+    ) -> Result<(), ApiError> {
         self.call(|reply| Command::AddRobot {
             row,
             start,
             t0,
-            stored: true,
+            stored,
             reply,
         })
         .await

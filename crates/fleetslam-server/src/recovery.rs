@@ -156,12 +156,7 @@ pub(crate) async fn recover_run(
         .iter()
         .map(|r| (r.token_hash.clone(), r.robot_id.clone()))
         .collect();
-    let enrollment = match store.get_artifact(&row.id, crate::app::ENROLLMENT).await? {
-        Some(body) => serde_json::from_str::<serde_json::Value>(&body)
-            .ok()
-            .and_then(|v| v["token_sha256"].as_str().map(str::to_string)),
-        None => None,
-    };
+    let enrollment = crate::app::stored_enrollment(store, &row.id).await?;
     state
         .insert_live(
             row.id.clone(),

@@ -59,3 +59,49 @@ pub fn serve(bind: &str, store: &[&str]) -> (Server, String) {
         .to_string();
     (Server(child), url)
 }
+
+/// The log exported to `exported` holds exactly `n` records, none of them twice.
+pub fn assert_stored_once(exported: &Path, n: usize, what: &str) {
+    let stored = std::fs::read_to_string(exported.join("log.ndjson")).unwrap();
+    let mut keys: Vec<(String, u64)> = stored
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let v: serde_json::Value = serde_json::from_str(l).unwrap();
+            (
+                v["robot"].as_str().unwrap().to_string(),
+                v["seq"].as_u64().unwrap(),
+            )
+        })
+        .collect();
+    assert_eq!(keys.len(), n, "{what}: every acknowledged record stored");
+    keys.sort();
+    keys.dedup();
+    assert_eq!(keys.len(), n, "{what}: a record is stored twice");
+}
+
+/// Runs `log` offline (`fleetslam run --particles 50 --seed 5`, the replays' settings)
+/// into `offline`; the exported 3 trajectories and landmarks must equal it byte for byte.
+pub fn assert_equals_offline(log: &Path, exported: &Path, offline: &Path, what: &str) {
+    ok(&[
+        "run",
+        log.to_str().unwrap(),
+        "--particles",
+        "50",
+        "--seed",
+        "5",
+        "--out",
+        offline.to_str().unwrap(),
+    ]);
+    let mut compared = 0;
+    for entry in std::fs::read_dir(offline).unwrap() {
+        let name = entry.unwrap().file_name().to_string_lossy().into_owned();
+        if name.ends_with(".tum") || name == "landmarks.csv" {
+            let want = std::fs::read_to_string(offline.join(&name)).unwrap();
+            let got = std::fs::read_to_string(exported.join(&name)).unwrap();
+            assert!(want == got, "{what}: {name} differs from the offline run");
+            compared += 1;
+        }
+    }
+    assert_eq!(compared, 4, "3 trajectories and the landmarks");
+}

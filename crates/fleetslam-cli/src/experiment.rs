@@ -42,8 +42,9 @@ pub fn cmd_experiment(c: ExperimentCommand) -> Result<()> {
 /// Training shared by both experiments.
 #[derive(Debug, Args, Clone)]
 pub struct TrainingArgs {
-    /// Simulated runs whose EKF updates are logged for training.
-    #[arg(long, default_value_t = 3)]
+    /// Simulated runs whose EKF updates are logged for training: split by run into
+    /// training runs, one validation run (early stopping) and one test run (the report).
+    #[arg(long, default_value_t = 5)]
     pub train_runs: usize,
     /// Particles of the training runs.
     #[arg(long, default_value_t = 200)]
@@ -63,6 +64,12 @@ pub struct TrainingArgs {
     /// Use this default-preset model instead of training one.
     #[arg(long)]
     pub default_model: Option<PathBuf>,
+    /// Epochs of the structured preset.
+    #[arg(long)]
+    pub structured_epochs: Option<usize>,
+    /// Use this structured-preset model instead of training one.
+    #[arg(long)]
+    pub structured_model: Option<PathBuf>,
     /// Where models and training rows go.
     #[arg(long, default_value = "target/experiments")]
     pub work: PathBuf,
@@ -103,7 +110,7 @@ pub struct MrclamArgs {
     /// Keep only the first SECONDS of the data set.
     #[arg(long)]
     pub duration: Option<f64>,
-    #[arg(long, value_delimiter = ',', default_values_t = [1, 2, 3])]
+    #[arg(long, value_delimiter = ',', default_values_t = [1, 2, 3, 4, 5, 6, 7, 8, 9, 10])]
     pub seeds: Vec<u64>,
     #[arg(long, default_value_t = 500)]
     pub particles: usize,
@@ -191,10 +198,11 @@ fn record_rows(log: &Log, cfg: &FilterConfig, rate: f64, seed: u64) -> Result<Ve
     Ok(rec.drain_rows())
 }
 
-/// The paper and default models: loaded, or trained on `rows` and saved under `work`.
+/// The paper, default and structured models: loaded, or trained on `runs` (split by run)
+/// and saved under `work`.
 fn models(
     t: &TrainingArgs,
-    rows: &[TrainingRow],
+    runs: &[Vec<TrainingRow>],
     kind: LandmarkKind,
     noise: SensorNoise,
     tag: &str,
@@ -203,6 +211,7 @@ fn models(
     for (preset, given, epochs) in [
         ("paper", &t.paper_model, t.paper_epochs),
         ("default", &t.default_model, t.default_epochs),
+        ("structured", &t.structured_model, t.structured_epochs),
     ] {
         if let Some(p) = given {
             out.push(load_model(p)?);
@@ -215,7 +224,7 @@ fn models(
         if let Some(e) = epochs {
             cfg.epochs = e;
         }
-        let trained = train_with_progress(rows, &cfg)?;
+        let trained = train_with_progress(runs, &cfg)?;
         print_report(&trained);
         let dir = t.work.join(&id);
         save_model_dir(&dir, &trained)?;
@@ -223,6 +232,18 @@ fn models(
         out.push(trained.model);
     }
     Ok(out)
+}
+
+/// Writes each run's rows to `work/<stem>-run<k>.ndjson` (one file per run, as `fleetslam
+/// train --data` takes them).
+fn write_runs(work: &std::path::Path, stem: &str, runs: &[Vec<TrainingRow>]) -> Result<()> {
+    std::fs::create_dir_all(work)?;
+    for (k, rows) in runs.iter().enumerate() {
+        let path = work.join(format!("{stem}-run{k}.ndjson"));
+        write_ndjson_path(&path, rows)?;
+        println!("{} training rows -> {}", rows.len(), path.display());
+    }
+    Ok(())
 }
 
 fn updaters(cfg: &FilterConfig, models: &[MlpModel]) -> Result<Vec<Arc<dyn LandmarkUpdater>>> {
@@ -257,24 +278,28 @@ fn cmd_paper(a: PaperArgs) -> Result<()> {
         let results: Vec<Scored> = serde_json::from_slice(
             &std::fs::read(path).with_context(|| format!("reading {}", path.display()))?,
         )?;
-        let models = [&a.training.paper_model, &a.training.default_model]
-            .into_iter()
-            .flatten()
-            .map(|p| load_model(p))
-            .collect::<Result<Vec<_>>>()?;
+        let models = [
+            &a.training.paper_model,
+            &a.training.default_model,
+            &a.training.structured_model,
+        ]
+        .into_iter()
+        .flatten()
+        .map(|p| load_model(p))
+        .collect::<Result<Vec<_>>>()?;
         return write_paper_outputs(&a, &results, &models);
     }
     let base = SimConfig::default();
     let world_a = random_landmarks(a.landmarks, base.arena, base.landmark_height, 100 + a.seed);
     // Training: the EKF's updates in world A, on trajectories of other seeds than the tests'.
-    let mut rows = Vec::new();
+    let mut runs = Vec::new();
     let mut cfg_train = None;
     for k in 0..a.training.train_runs {
         let sim = simulate(&sim3(&a, world_a.clone(), 1000 + k as u64 + 10 * a.seed))?;
         let mut cfg = FilterConfig::from_header(&sim.log.header);
         cfg.particles = a.training.train_particles;
         cfg.seed = 1000 + k as u64;
-        rows.extend(record_rows(
+        runs.push(record_rows(
             &sim.log,
             &cfg,
             a.training.training_rate,
@@ -283,13 +308,10 @@ fn cmd_paper(a: PaperArgs) -> Result<()> {
         cfg_train = Some(cfg);
     }
     let cfg_train = cfg_train.context("--train-runs must be at least 1")?;
-    std::fs::create_dir_all(&a.training.work)?;
-    let data = a.training.work.join("paper-training.ndjson");
-    write_ndjson_path(&data, &rows)?;
-    println!("{} training rows -> {}", rows.len(), data.display());
+    write_runs(&a.training.work, "paper-training", &runs)?;
     let models = models(
         &a.training,
-        &rows,
+        &runs,
         LandmarkKind::Point3d,
         cfg_train.sensor_noise,
         "point3d",
@@ -356,8 +378,27 @@ fn write_paper_outputs(a: &PaperArgs, results: &[Scored], models: &[MlpModel]) -
     Ok(())
 }
 
-fn fmt_opt(v: Option<f64>) -> String {
-    v.map_or("-".into(), |v| format!("{v:.3}"))
+fn fmt_opt(v: Option<String>) -> String {
+    v.unwrap_or_else(|| "-".into())
+}
+
+/// A length or ratio with 3 decimals; a diverged run's (not finite or beyond 1 km) in
+/// scientific notation, marked.
+fn fmt_m(v: f64) -> String {
+    if v.is_finite() && v.abs() < 1e3 {
+        format!("{v:.3}")
+    } else {
+        format!("{v:.1e} (diverged)")
+    }
+}
+
+/// A ratio as a signed percentage difference; a diverged one marked.
+fn fmt_pct(ratio: f64) -> String {
+    if ratio.is_finite() && ratio.abs() < 1e3 {
+        format!("{:+.1} %", 100.0 * (ratio - 1.0))
+    } else {
+        "diverged".into()
+    }
 }
 
 fn paper_markdown(a: &PaperArgs, results: &[Scored], models: &[MlpModel]) -> String {
@@ -402,27 +443,38 @@ fn paper_markdown(a: &PaperArgs, results: &[Scored], models: &[MlpModel]) -> Str
             r.rms_x,
             r.rms_y,
             r.rms_heading,
-            fmt_opt(r.landmark_rmse),
+            fmt_opt(r.landmark_rmse.map(fmt_m)),
             r.ns_per_update,
             r.wall_s
         );
     }
+    s.push_str(&model_lines(models));
+    s
+}
+
+/// One line per model: layout, network and its error against the EKF on its test run.
+fn model_lines(models: &[MlpModel]) -> String {
+    let mut s = String::new();
     let _ = writeln!(s, "\nModels:\n");
     for m in models {
         let v = m.metadata.get("report").and_then(|r| r.get("updater"));
+        let f = |k: &str| {
+            v.and_then(|v| v.get(k))
+                .and_then(|v| v.as_f64())
+                .map_or("-".into(), |v| format!("{v:.5}"))
+        };
         let _ = writeln!(
             s,
-            "- `{}`: {} layout, hidden {:?} {}; validation posterior-mean RMSE against the EKF {} m (not updating: {} m)",
+            "- `{}`: {} layout, hidden {:?} {}; on its test run (never trained or validated on): \
+             posterior-mean RMSE against the EKF {} m (not updating: {} m), covariance relative \
+             RMSE {}",
             m.id,
             m.layout.as_str(),
             m.hidden(),
             m.activation.as_str(),
-            v.and_then(|v| v.get("mean_rmse"))
-                .and_then(|v| v.as_f64())
-                .map_or("-".into(), |v| format!("{v:.4}")),
-            v.and_then(|v| v.get("no_update_rmse"))
-                .and_then(|v| v.as_f64())
-                .map_or("-".into(), |v| format!("{v:.4}")),
+            f("mean_rmse"),
+            f("no_update_rmse"),
+            f("cov_rel_rmse"),
         );
     }
     s
@@ -442,7 +494,7 @@ fn cmd_mrclam(a: MrclamArgs) -> Result<()> {
     let base_cfg = FilterConfig::from_header(&imp.log.header);
     // Training data: simulated 5-robot range-bearing runs, logged by an EKF that assumes
     // the same sensor noise as the MRCLAM runs (never MRCLAM data).
-    let mut rows = Vec::new();
+    let mut runs = Vec::new();
     for k in 0..a.training.train_runs {
         let sim = simulate(&SimConfig {
             robots: 5,
@@ -461,24 +513,17 @@ fn cmd_mrclam(a: MrclamArgs) -> Result<()> {
         cfg.sensor_noise = base_cfg.sensor_noise;
         cfg.particles = a.training.train_particles;
         cfg.seed = 500 + k as u64;
-        rows.extend(record_rows(
+        runs.push(record_rows(
             &sim.log,
             &cfg,
             a.training.training_rate,
             k as u64,
         )?);
     }
-    std::fs::create_dir_all(&a.training.work)?;
-    let data = a.training.work.join("mrclam-sim-training.ndjson");
-    write_ndjson_path(&data, &rows)?;
-    println!(
-        "{} simulated training rows -> {}",
-        rows.len(),
-        data.display()
-    );
+    write_runs(&a.training.work, "mrclam-sim-training", &runs)?;
     let models = models(
         &a.training,
-        &rows,
+        &runs,
         LandmarkKind::RangeBearing2d,
         base_cfg.sensor_noise,
         "range_bearing_2d",
@@ -506,12 +551,12 @@ fn cmd_mrclam(a: MrclamArgs) -> Result<()> {
     let json = a.training.work.join("mrclam-results.json");
     std::fs::write(&json, serde_json::to_vec_pretty(&results)?)?;
     let md_path = a.out_dir.join("learned-mrclam.md");
-    std::fs::write(&md_path, mrclam_markdown(&a, &results))?;
+    std::fs::write(&md_path, mrclam_markdown(&a, &results, &models))?;
     println!("wrote {} and {}", md_path.display(), json.display());
     Ok(())
 }
 
-fn mrclam_markdown(a: &MrclamArgs, results: &[Scored]) -> String {
+fn mrclam_markdown(a: &MrclamArgs, results: &[Scored], models: &[MlpModel]) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
@@ -531,12 +576,12 @@ fn mrclam_markdown(a: &MrclamArgs, results: &[Scored]) -> String {
             .map_or(f64::NAN, |e| e.ate);
         let _ = writeln!(
             s,
-            "| {} | {} | {:.3} | {:.3} | {} | {:.0} | {:.1} |",
+            "| {} | {} | {} | {} | {} | {:.0} | {:.1} |",
             r.seed,
             r.updater,
-            r.ate,
-            r.ate / ekf,
-            fmt_opt(r.landmark_rmse),
+            fmt_m(r.ate),
+            fmt_m(r.ate / ekf),
+            fmt_opt(r.landmark_rmse.map(fmt_m)),
             r.ns_per_update,
             r.wall_s
         );
@@ -547,17 +592,37 @@ fn mrclam_markdown(a: &MrclamArgs, results: &[Scored]) -> String {
     names.dedup();
     let _ = writeln!(
         s,
-        "\nMeans over seeds:\n\n| updater | team ATE RMSE [m] | ns per update |\n|---|---|---|"
+        "\nOver seeds (worst seed: the largest team ATE; ratios against the EKF's mean and worst):\n\n\
+         | updater | seeds | mean team ATE [m] | mean / EKF's | worst team ATE [m] (seed) | worst / EKF's worst | ns per update (mean) |\n|---|---|---|---|---|---|---|"
     );
-    for n in names {
+    let stats = |n: &str| -> (usize, f64, f64, u64, f64) {
         let v: Vec<&Scored> = results.iter().filter(|r| r.updater == n).collect();
         let k = v.len().max(1) as f64;
+        let worst = v
+            .iter()
+            .copied()
+            .max_by(|a, b| a.ate.total_cmp(&b.ate))
+            .map_or((f64::NAN, 0), |r| (r.ate, r.seed));
+        (
+            v.len(),
+            v.iter().map(|r| r.ate).sum::<f64>() / k,
+            worst.0,
+            worst.1,
+            v.iter().map(|r| r.ns_per_update).sum::<f64>() / k,
+        )
+    };
+    let (_, ekf_mean, ekf_worst, _, _) = stats("ekf");
+    for n in names {
+        let (count, mean, worst, worst_seed, ns) = stats(n);
         let _ = writeln!(
             s,
-            "| {n} | {:.3} | {:.0} |",
-            v.iter().map(|r| r.ate).sum::<f64>() / k,
-            v.iter().map(|r| r.ns_per_update).sum::<f64>() / k
+            "| {n} | {count} | {} | {} | {} ({worst_seed}) | {} | {ns:.0} |",
+            fmt_m(mean),
+            fmt_pct(mean / ekf_mean),
+            fmt_m(worst),
+            fmt_pct(worst / ekf_worst),
         );
     }
+    s.push_str(&model_lines(models));
     s
 }

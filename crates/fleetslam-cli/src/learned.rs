@@ -8,9 +8,10 @@ use fleetslam_core::ekf::EkfUpdater;
 use fleetslam_core::filter::FastSlam;
 use fleetslam_core::log::Log;
 use fleetslam_core::sensor::LandmarkKind;
-use fleetslam_core::updater::{LandmarkUpdater, UpdateInput, UpdateOutput};
+use fleetslam_core::updater::{LandmarkUpdater, UpdateInput, UpdateNeeds, UpdateOutput};
 use fleetslam_data::run::{RunOutput, TrajectoryEstimate, run_log};
 use fleetslam_learned::dataset::synthetic_rows;
+use fleetslam_learned::kernel::{Arch, Kernel, LANES, Scratch};
 use fleetslam_learned::row::{read_ndjson_path, write_ndjson_path};
 use fleetslam_learned::training::{BurnPredictor, TrainConfig, Trained, save_model_dir, train};
 use fleetslam_learned::{
@@ -18,6 +19,7 @@ use fleetslam_learned::{
 };
 use fleetslam_store::{NewModel, Store};
 use indicatif::{ProgressBar, ProgressStyle};
+use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
@@ -181,11 +183,15 @@ pub fn cmd_export_training(a: ExportTrainingArgs) -> Result<()> {
 
 #[derive(Debug, Args)]
 pub struct TrainArgs {
-    /// Training rows (NDJSON, from `run --log-training` or `export-training`); repeatable.
+    /// Training rows of one run (NDJSON, from `run --log-training` or `export-training`);
+    /// repeat it for every run. Runs, never rows, are split into training, validation and
+    /// test sets, so at least 3 are needed.
     #[arg(long = "data", value_name = "FILE", required = true)]
     pub data: Vec<PathBuf>,
-    /// Starting point: `paper` (the paper's 2-neuron linear network) or `default`.
-    #[arg(long, value_parser = ["paper", "default"], default_value = "default")]
+    /// Starting point: `paper` (the paper's 2-neuron linear network), `default` (2 × 32
+    /// ReLU on whitened features and innovation) or `structured` (gain and posterior factor
+    /// from the prior and noise).
+    #[arg(long, value_parser = TrainConfig::PRESETS, default_value = "default")]
     pub preset: String,
     /// Model id (the updater name runs use); default `mlp-<preset>-<kind>`.
     #[arg(long)]
@@ -203,8 +209,12 @@ pub struct TrainArgs {
     pub epochs: Option<usize>,
     #[arg(long)]
     pub batch_size: Option<usize>,
+    /// Runs held out for validation (early stopping).
     #[arg(long)]
-    pub val_split: Option<f64>,
+    pub val_runs: Option<usize>,
+    /// Runs held out for the test report (0: none).
+    #[arg(long)]
+    pub test_runs: Option<usize>,
     #[arg(long)]
     pub seed: Option<u64>,
     #[arg(long)]
@@ -243,20 +253,21 @@ impl TrainArgs {
         macro_rules! set {
             ($($f:ident),*) => { $( if let Some(v) = self.$f { c.$f = v; } )* };
         }
-        set!(lr, epochs, batch_size, val_split, seed, patience);
+        set!(lr, epochs, batch_size, val_runs, test_runs, seed, patience);
         c.validate()?;
         Ok(c)
     }
 }
 
-/// Trains with a progress bar showing the losses.
-pub fn train_with_progress(rows: &[TrainingRow], cfg: &TrainConfig) -> Result<Trained> {
+/// Trains on `runs` (the rows of each run) with a progress bar showing the losses.
+pub fn train_with_progress(runs: &[Vec<TrainingRow>], cfg: &TrainConfig) -> Result<Trained> {
     let bar = ProgressBar::new(cfg.epochs as u64);
     bar.set_style(ProgressStyle::with_template(
         "{spinner} [{elapsed_precise}] {bar:30} epoch {pos}/{len} {msg}",
     )?);
-    bar.set_message(format!("{} ({} rows)", cfg.id, rows.len()));
-    let t = train(rows, cfg, |epoch, _, tl, vl| {
+    let n: usize = runs.iter().map(Vec::len).sum();
+    bar.set_message(format!("{} ({n} rows, {} runs)", cfg.id, runs.len()));
+    let t = train(runs, cfg, |epoch, _, tl, vl| {
         bar.set_position(epoch as u64);
         bar.set_message(format!("{}: train loss {tl:.5}, val loss {vl:.5}", cfg.id));
     })?;
@@ -267,7 +278,8 @@ pub fn train_with_progress(rows: &[TrainingRow], cfg: &TrainConfig) -> Result<Tr
 pub fn print_report(t: &Trained) {
     let r = &t.report;
     println!(
-        "model {} ({}, {} layout, hidden {:?} {}, {:?}): {} train / {} validation rows, {} skipped; \
+        "model {} ({}, {} layout, hidden {:?} {}, {:?}): {} train / {} validation / {} test rows \
+         (runs {:?} / {:?} / {:?}), {} skipped; \
          {} epochs (best {}) in {:.1} s; validation loss {:.5} -> {:.5} (standardised MSE)",
         t.model.id,
         r.kind.as_str(),
@@ -277,6 +289,10 @@ pub fn print_report(t: &Trained) {
         t.config.optimizer,
         r.train_rows,
         r.val_rows,
+        r.test_rows,
+        r.train_runs,
+        r.val_runs,
+        r.test_runs,
         r.skipped_rows,
         r.epochs_run,
         r.best_epoch,
@@ -288,16 +304,19 @@ pub fn print_report(t: &Trained) {
         "sensor noise estimated from the EKF updates: range {:.4} m, bearing {:.4} rad, xyz {:.4?} m",
         r.noise.range, r.noise.bearing, r.noise.xyz
     );
-    println!("validation error of each network output:");
+    let Some(u) = &r.updater else {
+        println!("no test runs: no test report");
+        return;
+    };
+    println!("test error of each network output (test runs only):");
     for o in &r.outputs {
         println!(
             "  {:<10} RMSE {:.6} ({:.4} of its std)",
             o.name, o.rmse, o.normalized_rmse
         );
     }
-    let u = &r.updater;
     println!(
-        "the updater against the EKF on {} validation rows: posterior mean RMSE {:.5} m \
+        "the updater against the EKF on {} test rows: posterior mean RMSE {:.5} m \
          (not updating: {:.5} m), covariance relative RMSE {:.4}, log-likelihood RMSE {:.2e}, \
          Mahalanobis² RMSE {:.2e}, {} rejected",
         u.rows,
@@ -328,15 +347,16 @@ pub fn register(store: &StoreArgs, t: &Trained) -> Result<()> {
 }
 
 pub fn cmd_train(a: TrainArgs) -> Result<()> {
-    let mut rows = Vec::new();
-    for p in &a.data {
-        rows.extend(read_ndjson_path(p)?);
-    }
-    let Some(first) = rows.first() else {
+    let runs = a
+        .data
+        .iter()
+        .map(|p| read_ndjson_path(p).with_context(|| format!("reading {}", p.display())))
+        .collect::<Result<Vec<_>>>()?;
+    let Some(first) = runs.iter().flatten().next() else {
         bail!("the training files hold no rows");
     };
     let cfg = a.config(first.kind)?;
-    let t = train_with_progress(&rows, &cfg)?;
+    let t = train_with_progress(&runs, &cfg)?;
     print_report(&t);
     save_model_dir(&a.out, &t)?;
     println!(
@@ -366,6 +386,9 @@ pub struct BenchArgs {
     /// Seconds each micro-benchmark runs for.
     #[arg(long, default_value_t = 0.3)]
     pub seconds: f64,
+    /// Also write the update and forward-pass tables (markdown) to this file.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
 }
 
 /// Nanoseconds per item of `f(batch)` repeated for about `secs`.
@@ -383,37 +406,52 @@ fn ns_per_item(batch: usize, secs: f64, mut f: impl FnMut()) -> f64 {
     }
 }
 
-/// ns per update of `u` at each batch size, on `inputs` (cycled).
-pub fn bench_updater(u: &dyn LandmarkUpdater, inputs: &[UpdateInput], secs: f64) -> Vec<f64> {
+/// ns per update of `u` at each batch size, on `inputs` (cycled), asking for `needs`.
+pub fn bench_updater(
+    u: &dyn LandmarkUpdater,
+    needs: UpdateNeeds,
+    inputs: &[UpdateInput],
+    secs: f64,
+) -> Vec<f64> {
     BATCHES
         .iter()
         .map(|&b| {
             let batch: Vec<UpdateInput> = inputs.iter().cycle().take(b).copied().collect();
             let mut out = vec![UpdateOutput::default(); b];
             ns_per_item(b, secs, || {
-                u.update_batch(&batch, &mut out);
+                u.update_batch(needs, &batch, &mut out);
                 std::hint::black_box(&out);
             })
         })
         .collect()
 }
 
-/// ns per forward pass of the network alone: the plain path and burn's, at each batch size.
+/// ns per item of the network alone at each batch size: the inference kernel (raw features,
+/// normalisation folded in, [`LANES`] items per pass) and burn's batched forward (flex, on
+/// standardised inputs).
 pub fn bench_forward(model: &MlpModel, secs: f64) -> (Vec<f64>, Vec<f64>) {
     let (n_in, n_out) = model.layout.dims(model.kind);
     let burn = BurnPredictor::new(model);
+    let kernel = Kernel::new(model);
+    let mut scratch = Box::<Scratch>::default();
     let mut plain = Vec::new();
     let mut burned = Vec::new();
     for &b in BATCHES {
         let x: Vec<f32> = (0..b * n_in)
             .map(|i| ((i % 7) as f32 - 3.0) * 0.3)
             .collect();
-        let mut y = vec![0f32; b * n_out];
+        let passes = b.div_ceil(LANES);
+        let lanes: Vec<[f32; LANES]> = (0..passes * n_in)
+            .map(|i| std::array::from_fn(|l| ((i * LANES + l) % 7) as f32 * 0.3 - 0.9))
+            .collect();
+        let mut y = vec![[0f32; LANES]; n_out];
         plain.push(ns_per_item(b, secs, || {
-            for (xi, yi) in x.chunks_exact(n_in).zip(y.chunks_exact_mut(n_out)) {
-                model.forward_normalized(xi, yi);
-            }
-            std::hint::black_box(&y);
+            Arch::new().dispatch(|| {
+                for xp in lanes.chunks_exact(n_in) {
+                    kernel.forward(xp, &mut y, &mut scratch);
+                    std::hint::black_box(&y);
+                }
+            })
         }));
         burned.push(ns_per_item(b, secs, || {
             std::hint::black_box(burn.forward_normalized(&x));
@@ -422,7 +460,9 @@ pub fn bench_forward(model: &MlpModel, secs: f64) -> (Vec<f64>, Vec<f64>) {
     (plain, burned)
 }
 
-pub const BATCHES: &[usize] = &[1, 100, 10_000];
+/// Batch sizes of `bench-updaters`: one update, one observation across a work item of
+/// particles, and a large batch.
+pub const BATCHES: &[usize] = &[1, 64, 1000];
 
 /// A whole run of `log` with `updater`: (wall s, step p50 ms, ns per update).
 pub fn run_with(
@@ -460,37 +500,76 @@ pub fn cmd_bench_updaters(a: BenchArgs) -> Result<()> {
         .iter()
         .map(TrainingRow::input)
         .collect();
-    let mut updaters: Vec<Arc<dyn LandmarkUpdater>> = vec![Arc::new(EkfUpdater::new(kind, &noise))];
+    let mut updaters: Vec<(String, Arc<dyn LandmarkUpdater>)> =
+        vec![("ekf".into(), Arc::new(EkfUpdater::new(kind, &noise)))];
     for m in &models {
-        updaters.push(Arc::new(MlpUpdater::new(m.clone())?));
+        updaters.push((m.id.clone(), Arc::new(MlpUpdater::new(m.clone())?)));
+        updaters.push((
+            format!("{} (baseline SIMD)", m.id),
+            Arc::new(MlpUpdater::new(m.clone())?.baseline_simd()),
+        ));
     }
-    println!(
-        "ns per landmark update ({} landmarks, one thread, generated updates)",
-        kind.as_str()
+    let mut md = String::new();
+    let _ = writeln!(
+        md,
+        "ns per landmark update ({} landmarks, one thread, {} generated updates cycled; \
+         `posterior`: what FastSLAM 2.0 asks, `+ likelihood`: 1.0 or an outlier gate)\n",
+        kind.as_str(),
+        inputs.len()
     );
-    println!("| updater | batch 1 | batch 100 | batch 10,000 |\n|---|---|---|---|");
-    for u in &updaters {
-        let ns = bench_updater(u.as_ref(), &inputs, a.seconds);
-        println!(
-            "| {} | {:.0} | {:.0} | {:.0} |",
-            u.name(),
-            ns[0],
-            ns[1],
-            ns[2]
-        );
+    let _ = writeln!(
+        md,
+        "| updater | needs | batch 1 | batch 64 | batch 1,000 | / EKF at 64 | / EKF at 1,000 |\n|---|---|---|---|---|---|---|"
+    );
+    for needs in [UpdateNeeds::Posterior, UpdateNeeds::PosteriorAndLikelihood] {
+        let mut ekf_ns: Option<Vec<f64>> = None;
+        for (name, u) in &updaters {
+            let ns = bench_updater(u.as_ref(), needs, &inputs, a.seconds);
+            let base = ekf_ns.get_or_insert_with(|| ns.clone()).clone();
+            let _ = writeln!(
+                md,
+                "| {} | {} | {:.0} | {:.0} | {:.0} | {:.2} | {:.2} |",
+                name,
+                match needs {
+                    UpdateNeeds::Posterior => "posterior",
+                    UpdateNeeds::PosteriorAndLikelihood => "+ likelihood",
+                },
+                ns[0],
+                ns[1],
+                ns[2],
+                ns[1] / base[1],
+                ns[2] / base[2]
+            );
+        }
     }
-    println!("\nns per forward pass of the network alone, plain Rust vs burn (flex):");
-    println!("| model | path | batch 1 | batch 100 | batch 10,000 |\n|---|---|---|---|---|");
+    let _ = writeln!(
+        md,
+        "\nns per item of the network alone: the inference kernel (f32, {LANES} lanes, \
+         normalisation folded, dispatched to AVX2 where the CPU has it) against burn's batched \
+         forward (flex):\n"
+    );
+    let _ = writeln!(
+        md,
+        "| model | hidden | path | batch 1 | batch 64 | batch 1,000 |\n|---|---|---|---|---|---|"
+    );
     for m in &models {
         let (plain, burn) = bench_forward(m, a.seconds);
-        println!(
-            "| {} | plain | {:.1} | {:.1} | {:.1} |",
-            m.id, plain[0], plain[1], plain[2]
-        );
-        println!(
-            "| {} | burn | {:.1} | {:.1} | {:.1} |",
-            m.id, burn[0], burn[1], burn[2]
-        );
+        for (path, v) in [("kernel", plain), ("burn", burn)] {
+            let _ = writeln!(
+                md,
+                "| {} | {:?} | {path} | {:.1} | {:.1} | {:.1} |",
+                m.id,
+                m.hidden(),
+                v[0],
+                v[1],
+                v[2]
+            );
+        }
+    }
+    print!("{md}");
+    if let Some(out) = &a.out {
+        std::fs::write(out, &md).with_context(|| format!("writing {}", out.display()))?;
+        println!("wrote {}", out.display());
     }
     if let Some(path) = &a.log {
         let log = Log::read_path(path).with_context(|| format!("reading {}", path.display()))?;

@@ -55,10 +55,35 @@ fn log_rows_train_and_run_with_the_model() {
         "1",
     ]);
     assert_eq!(rows, std::fs::read_to_string(d("rows2.ndjson")).unwrap());
+    // Two more runs (other filter seeds): training splits runs, never rows.
+    for seed in ["2", "3"] {
+        ok(&[
+            "run",
+            &log,
+            "--particles",
+            "50",
+            "--seed",
+            seed,
+            "--out",
+            &d(&format!("ekf-seed{seed}")),
+            "--log-training",
+            &d(&format!("rows-seed{seed}.ndjson")),
+            "--training-rate",
+            "0.5",
+            "--training-cap",
+            "20000",
+        ]);
+    }
+    let err = common::fails(&["train", "--data", &d("rows.ndjson"), "--out", &d("m1")]);
+    assert!(err.contains("a split by run needs at least 3"), "{err}");
     let out = ok(&[
         "train",
         "--data",
         &d("rows.ndjson"),
+        "--data",
+        &d("rows-seed2.ndjson"),
+        "--data",
+        &d("rows-seed3.ndjson"),
         "--preset",
         "default",
         "--hidden",
@@ -73,7 +98,7 @@ fn log_rows_train_and_run_with_the_model() {
         &d("store"),
     ]);
     assert!(
-        out.contains("validation error of each network output"),
+        out.contains("test error of each network output (test runs only)"),
         "{out}"
     );
     assert!(out.contains("registered model cli-mlp"), "{out}");

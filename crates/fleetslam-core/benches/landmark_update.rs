@@ -9,7 +9,7 @@ use fleetslam_core::Pose2;
 use fleetslam_core::ekf::EkfUpdater;
 use fleetslam_core::rng::stream;
 use fleetslam_core::sensor::{LandmarkKind, SensorNoise};
-use fleetslam_core::updater::{LandmarkUpdater, UpdateInput, UpdateOutput};
+use fleetslam_core::updater::{LandmarkUpdater, UpdateInput, UpdateNeeds, UpdateOutput};
 use rand::Rng;
 use std::f64::consts::PI;
 use std::hint::black_box;
@@ -68,7 +68,11 @@ fn bench_batch(c: &mut Criterion) {
             g.throughput(Throughput::Elements(n as u64));
             g.bench_with_input(BenchmarkId::new(kind.as_str(), n), &inp, |b, inp| {
                 b.iter(|| {
-                    u.update_batch(black_box(inp), &mut out);
+                    u.update_batch(
+                        UpdateNeeds::PosteriorAndLikelihood,
+                        black_box(inp),
+                        &mut out,
+                    );
                     black_box(&out);
                 })
             });

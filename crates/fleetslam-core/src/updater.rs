@@ -1,12 +1,14 @@
 //! The per-landmark update, behind a trait so that the EKF can be swapped for a learned one.
 //!
 //! An updater is a pure function of (landmark prior, robot pose, measurement): it returns
-//! the landmark posterior and the observation's log-likelihood (which weighs the particle in
-//! FastSLAM 1.0) and its squared Mahalanobis distance (which the filter uses to reject
-//! outliers). It also creates a landmark from its first observation. Updates come in batches
-//! (one item per particle), so an implementation can vectorise across particles; the
-//! filter's results must not depend on how items are batched, so every item is computed
-//! independently of the others.
+//! the landmark posterior and, when asked ([`UpdateNeeds`]), the observation's log-likelihood
+//! (which weighs the particle in FastSLAM 1.0) and its squared Mahalanobis distance (which the
+//! filter uses to reject outliers). FastSLAM 2.0 takes the particle's weight from its proposal
+//! and needs only the posterior, so the filter says so and neither updater computes what
+//! would be thrown away. An updater also creates a landmark from its first observation.
+//! Updates come in batches (one item per particle), so an implementation can vectorise across
+//! particles; the filter's results must not depend on how items are batched, so every item is
+//! computed independently of the others, and the posterior is the same whatever was asked.
 
 use crate::pose::Pose2;
 use crate::sensor::LandmarkKind;
@@ -66,13 +68,32 @@ pub struct UpdateInput {
     pub z: [f64; 3],
 }
 
+/// What the filter needs from a batch of updates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum UpdateNeeds {
+    /// The posterior only (FastSLAM 2.0 without an outlier gate: the weight came from the
+    /// proposal). `log_likelihood` and `mahalanobis2` of the outputs are unspecified (NaN).
+    Posterior,
+    /// The posterior, the log-likelihood and the squared Mahalanobis distance.
+    PosteriorAndLikelihood,
+}
+
+impl UpdateNeeds {
+    pub fn likelihood(self) -> bool {
+        self == UpdateNeeds::PosteriorAndLikelihood
+    }
+}
+
 /// The result of one update.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct UpdateOutput {
     pub posterior: LandmarkGaussian,
-    /// ln p(z | prior, pose): the Gaussian innovation likelihood.
+    /// ln p(z | prior, pose): the Gaussian innovation likelihood; −∞ for an update that
+    /// could not be computed (the posterior is then the prior); NaN when not asked for.
     pub log_likelihood: f64,
-    /// Squared Mahalanobis distance of the innovation.
+    /// Squared Mahalanobis distance of the innovation (∞ for an update that could not be
+    /// computed, NaN when not asked for).
     pub mahalanobis2: f64,
 }
 
@@ -87,13 +108,23 @@ pub trait LandmarkUpdater: Send + Sync + std::fmt::Debug {
     /// A new landmark from its first observation.
     fn initialize(&self, pose: &Pose2, z: &[f64; 3]) -> LandmarkGaussian;
 
-    /// Updates every input; `outputs.len() == inputs.len()`.
-    fn update_batch(&self, inputs: &[UpdateInput], outputs: &mut [UpdateOutput]);
+    /// Updates every input; `outputs.len() == inputs.len()`. The posteriors must not depend
+    /// on `needs`; the likelihood fields are only meaningful when `needs` asks for them.
+    fn update_batch(
+        &self,
+        needs: UpdateNeeds,
+        inputs: &[UpdateInput],
+        outputs: &mut [UpdateOutput],
+    );
 
-    /// One update (a batch of one).
+    /// One full update (a batch of one, posterior and likelihood).
     fn update(&self, input: &UpdateInput) -> UpdateOutput {
         let mut out = [UpdateOutput::default()];
-        self.update_batch(std::slice::from_ref(input), &mut out);
+        self.update_batch(
+            UpdateNeeds::PosteriorAndLikelihood,
+            std::slice::from_ref(input),
+            &mut out,
+        );
         out[0]
     }
 }

@@ -1,5 +1,7 @@
-//! ns per landmark update: the EKF against the MLP updaters (paper and default presets),
-//! plain Rust and burn's batched forward pass, at batch sizes 1, 100 and 10,000.
+//! ns per landmark update: the EKF against the MLP updaters (paper, default and structured
+//! presets), asking for the posterior only (FastSLAM 2.0) and for the likelihood too, and the
+//! network alone (the inference kernel against burn's batched forward pass), at batch sizes
+//! 1, 64 and 1,000.
 //!
 //! Run with `cargo bench -p fleetslam-learned --bench updaters`. The models are trained
 //! here on generated updates for a few epochs: speed depends on the architecture, not on
@@ -9,14 +11,15 @@
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use fleetslam_core::ekf::EkfUpdater;
 use fleetslam_core::sensor::{LandmarkKind, SensorNoise};
-use fleetslam_core::updater::{LandmarkUpdater, UpdateInput, UpdateOutput};
+use fleetslam_core::updater::{LandmarkUpdater, UpdateInput, UpdateNeeds, UpdateOutput};
 use fleetslam_learned::dataset::synthetic_rows;
+use fleetslam_learned::kernel::{Kernel, LANES, Scratch};
 use fleetslam_learned::training::{BurnPredictor, TrainConfig, train};
 use fleetslam_learned::{MlpModel, MlpUpdater, TrainingRow};
 use std::hint::black_box;
 use std::sync::Arc;
 
-const BATCHES: [usize; 3] = [1, 100, 10_000];
+const BATCHES: [usize; 3] = [1, 64, 1000];
 
 fn models(kind: LandmarkKind, noise: &SensorNoise) -> Vec<MlpModel> {
     if let Ok(dirs) = std::env::var("FLEETSLAM_BENCH_MODELS") {
@@ -34,13 +37,15 @@ fn models(kind: LandmarkKind, noise: &SensorNoise) -> Vec<MlpModel> {
             .filter(|m| m.kind == kind)
             .collect();
     }
-    let rows = synthetic_rows(kind, noise, 3000, 1);
-    ["paper", "default"]
+    let runs: Vec<_> = (1..=3)
+        .map(|seed| synthetic_rows(kind, noise, 1000, seed))
+        .collect();
+    TrainConfig::PRESETS
         .iter()
         .map(|p| {
             let mut c = TrainConfig::preset(p, &format!("mlp-{p}")).unwrap();
             c.epochs = 3;
-            train(&rows, &c, |_, _, _, _| {}).unwrap().model
+            train(&runs, &c, |_, _, _, _| {}).unwrap().model
         })
         .collect()
 }
@@ -59,16 +64,25 @@ fn bench_kind(c: &mut Criterion, kind: LandmarkKind) {
     let mut g = c.benchmark_group(format!("update_{}", kind.as_str()));
     g.sample_size(20);
     for u in &updaters {
-        for &b in &BATCHES {
-            let batch = &inputs[..b];
-            let mut out = vec![UpdateOutput::default(); b];
-            g.throughput(Throughput::Elements(b as u64));
-            g.bench_with_input(BenchmarkId::new(u.name(), b), &b, |bch, _| {
-                bch.iter(|| {
-                    u.update_batch(black_box(batch), &mut out);
-                    black_box(&out);
-                })
-            });
+        for (needs, tag) in [
+            (UpdateNeeds::Posterior, "posterior"),
+            (UpdateNeeds::PosteriorAndLikelihood, "likelihood"),
+        ] {
+            for &b in &BATCHES {
+                let batch = &inputs[..b];
+                let mut out = vec![UpdateOutput::default(); b];
+                g.throughput(Throughput::Elements(b as u64));
+                g.bench_with_input(
+                    BenchmarkId::new(format!("{}/{tag}", u.name()), b),
+                    &b,
+                    |bch, _| {
+                        bch.iter(|| {
+                            u.update_batch(needs, black_box(batch), &mut out);
+                            black_box(&out);
+                        })
+                    },
+                );
+            }
         }
     }
     g.finish();
@@ -77,21 +91,26 @@ fn bench_kind(c: &mut Criterion, kind: LandmarkKind) {
     for m in &models {
         let (n_in, n_out) = m.layout.dims(kind);
         let burn = BurnPredictor::new(m);
+        let kernel = Kernel::new(m);
         for &b in &BATCHES {
             let x: Vec<f32> = (0..b * n_in)
                 .map(|i| ((i % 7) as f32 - 3.0) * 0.3)
                 .collect();
-            let mut y = vec![0f32; b * n_out];
+            let lanes: Vec<[f32; LANES]> = (0..b.div_ceil(LANES) * n_in)
+                .map(|i| std::array::from_fn(|l| ((i * LANES + l) % 7) as f32 * 0.3 - 0.9))
+                .collect();
+            let mut y = vec![[0f32; LANES]; n_out];
+            let mut scratch = Box::<Scratch>::default();
             g.throughput(Throughput::Elements(b as u64));
             g.bench_with_input(
-                BenchmarkId::new(format!("{}/plain", m.id), b),
+                BenchmarkId::new(format!("{}/kernel", m.id), b),
                 &b,
                 |bch, _| {
                     bch.iter(|| {
-                        for (xi, yi) in x.chunks_exact(n_in).zip(y.chunks_exact_mut(n_out)) {
-                            m.forward_normalized(black_box(xi), yi);
+                        for xp in lanes.chunks_exact(n_in) {
+                            kernel.forward(black_box(xp), &mut y, &mut scratch);
+                            black_box(&y);
                         }
-                        black_box(&y);
                     })
                 },
             );

@@ -5,7 +5,7 @@ use crate::LearnedError;
 use crate::frame::{Frame, InputLayout, frame2, frame3, paper_features, paper_targets};
 use crate::row::TrainingRow;
 use fleetslam_core::sensor::{LandmarkKind, SensorNoise};
-use fleetslam_core::updater::LandmarkUpdater;
+use fleetslam_core::updater::{LandmarkUpdater, UpdateNeeds};
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use serde::{Deserialize, Serialize};
@@ -30,14 +30,24 @@ impl Encoded {
 }
 
 fn encode_frame<const D: usize>(
+    layout: InputLayout,
     f: &Frame<D>,
     row: &TrainingRow,
     x: &mut [f64],
     y: &mut [f64],
 ) -> Option<()> {
-    f.los_features(x);
+    let s = f.prior_std();
     let (corr, cov) = f.frame_posterior(&row.prior_mean, &row.output().posterior);
-    f.los_targets(&corr, &cov, y)?;
+    if layout == InputLayout::Gain {
+        // The gain is not in a row (one correction cannot determine a matrix): it is the
+        // EKF's gain `Σ (Σ + Q)⁻¹` from the row's prior and the noise estimated from the
+        // logged updates; the covariance target is the logged posterior.
+        f.prior_features(&s, x);
+        f.gain_targets(&f.innovation(false)?, &cov, y)?;
+    } else {
+        f.los_features(&s, x);
+        f.los_targets(&corr, &cov, y)?;
+    }
     x.iter()
         .chain(y.iter())
         .all(|v| v.is_finite())
@@ -75,11 +85,13 @@ pub fn encode(
                 paper_targets(kind, &row.output().posterior, &mut y);
                 Some(())
             }
-            InputLayout::LineOfSight => match kind {
+            InputLayout::LineOfSight | InputLayout::Gain => match kind {
                 LandmarkKind::RangeBearing2d => {
-                    frame2(&inp, noise).and_then(|f| encode_frame(&f, row, &mut x, &mut y))
+                    frame2(&inp, noise).and_then(|f| encode_frame(layout, &f, row, &mut x, &mut y))
                 }
-                LandmarkKind::Point3d => encode_frame(&frame3(&inp, noise), row, &mut x, &mut y),
+                LandmarkKind::Point3d => {
+                    encode_frame(layout, &frame3(&inp, noise), row, &mut x, &mut y)
+                }
             },
         };
         if ok.is_some() {
@@ -177,20 +189,55 @@ pub fn estimate_noise(
     Ok(noise)
 }
 
-/// Splits rows into (train, validation) after a seeded shuffle.
-pub fn split(
-    rows: &[TrainingRow],
-    val_fraction: f64,
+/// Training, validation and test rows, split by run: every run's rows go to exactly one set,
+/// so that the near-identical updates of one observation across particles (and of one
+/// landmark over a run) never sit on both sides.
+#[derive(Debug, Clone, Default)]
+pub struct RunSplit {
+    pub train: Vec<TrainingRow>,
+    pub val: Vec<TrainingRow>,
+    pub test: Vec<TrainingRow>,
+    /// Indices (into the runs given) of each set's runs.
+    pub train_runs: Vec<usize>,
+    pub val_runs: Vec<usize>,
+    pub test_runs: Vec<usize>,
+}
+
+/// Splits `runs` (each the rows of one run) into `val_runs` validation runs, `test_runs`
+/// test runs and the rest for training, after a seeded shuffle of the runs. Errors when
+/// fewer than `val_runs + test_runs + 1` runs hold rows.
+pub fn split_runs(
+    runs: &[Vec<TrainingRow>],
+    val_runs: usize,
+    test_runs: usize,
     seed: u64,
-) -> (Vec<TrainingRow>, Vec<TrainingRow>) {
-    let mut idx: Vec<usize> = (0..rows.len()).collect();
+) -> Result<RunSplit, LearnedError> {
+    let mut idx: Vec<usize> = (0..runs.len()).filter(|&i| !runs[i].is_empty()).collect();
+    if val_runs == 0 || idx.len() < val_runs + test_runs + 1 {
+        return Err(LearnedError::Data(format!(
+            "{} runs hold training rows, but a split by run needs at least {} (1 or more for \
+             training, {val_runs} for validation, {test_runs} for test; validation needs 1 or \
+             more): log rows from more runs (each file or store run is one run)",
+            idx.len(),
+            val_runs.max(1) + test_runs + 1
+        )));
+    }
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     idx.shuffle(&mut rng);
-    let n_val = ((rows.len() as f64) * val_fraction.clamp(0.0, 1.0)).round() as usize;
-    let n_val = n_val.min(rows.len());
-    let val = idx[..n_val].iter().map(|&i| rows[i]).collect();
-    let train = idx[n_val..].iter().map(|&i| rows[i]).collect();
-    (train, val)
+    let mut out = RunSplit {
+        val_runs: idx[..val_runs].to_vec(),
+        test_runs: idx[val_runs..val_runs + test_runs].to_vec(),
+        train_runs: idx[val_runs + test_runs..].to_vec(),
+        ..Default::default()
+    };
+    for v in [&mut out.val_runs, &mut out.test_runs, &mut out.train_runs] {
+        v.sort_unstable();
+    }
+    let gather = |ids: &[usize]| ids.iter().flat_map(|&i| runs[i].iter().copied()).collect();
+    out.train = gather(&out.train_runs);
+    out.val = gather(&out.val_runs);
+    out.test = gather(&out.test_runs);
+    Ok(out)
 }
 
 /// How far an updater's results are from the EKF's logged ones.
@@ -216,7 +263,7 @@ pub struct UpdaterError {
 pub fn updater_error(updater: &dyn LandmarkUpdater, rows: &[TrainingRow]) -> UpdaterError {
     let inputs: Vec<_> = rows.iter().map(TrainingRow::input).collect();
     let mut outs = vec![Default::default(); inputs.len()];
-    updater.update_batch(&inputs, &mut outs);
+    updater.update_batch(UpdateNeeds::PosteriorAndLikelihood, &inputs, &mut outs);
     let mut e = UpdaterError {
         rows: rows.len(),
         ..Default::default()

@@ -34,8 +34,10 @@ use fleetslam_core::stats::LN_2PI;
 pub enum InputLayout {
     /// The paper's layout (Vidal & Rosa 2015, Fig. 1): inputs are the landmark's previous
     /// world coordinates, the robot pose `(x, y, α)` and the observation (9 inputs for the 3D
-    /// stereo case, 7 for range-bearing); outputs are the landmark's new world coordinates
-    /// and one element of its covariance (`trace(Σ')/d`, the mean posterior variance).
+    /// stereo case, 7 for range-bearing); outputs are the landmark's new world coordinates.
+    /// The paper's network also outputs one element `P_ii` of the covariance; one element
+    /// cannot form a covariance (the updater takes the closed form), so it is not trained
+    /// here: it would only compete with the coordinates for the two hidden neurons.
     Paper,
     /// Our layout: everything in the measurement frame, whitened by the sensor noise.
     /// Inputs `ln(σᵢ/qᵢ)`, the prior's correlations, and the innovation over its standard
@@ -43,17 +45,25 @@ pub enum InputLayout {
     /// factor of the posterior covariance scaled by the prior standard deviations (log
     /// diagonal, raw off-diagonal), so that any output is a valid covariance.
     LineOfSight,
+    /// The structured layout: the network sees only the prior and the noise (`ln(σᵢ/qᵢ)` and
+    /// the prior's correlations, no innovation) and predicts the gain scaled by the prior and
+    /// innovation standard deviations (`K̃ᵢⱼ = Kᵢⱼ uⱼ/sᵢ`, row-major) and the posterior's scaled
+    /// Cholesky factor (as `line_of_sight`). The posterior mean `μ + K ν` is then exactly
+    /// linear in the innovation, as the EKF's is, whatever the network's error.
+    Gain,
 }
 
 impl InputLayout {
     /// The version of the feature definitions; bump it when they change so that old models
     /// are refused instead of silently misread.
-    pub const VERSION: u32 = 1;
+    /// Version 2: the paper layout lost its `P_ii` output and `gain` was added.
+    pub const VERSION: u32 = 2;
 
     pub fn as_str(self) -> &'static str {
         match self {
             InputLayout::Paper => "paper",
             InputLayout::LineOfSight => "line_of_sight",
+            InputLayout::Gain => "gain",
         }
     }
 
@@ -61,8 +71,9 @@ impl InputLayout {
     pub fn dims(self, kind: LandmarkKind) -> (usize, usize) {
         let d = kind.dim();
         match self {
-            InputLayout::Paper => (2 * d + 3, d + 1),
+            InputLayout::Paper => (2 * d + 3, d),
             InputLayout::LineOfSight => (2 * d + d * (d - 1) / 2, 2 * d + d * (d - 1) / 2),
+            InputLayout::Gain => (d + d * (d - 1) / 2, d * d + d + d * (d - 1) / 2),
         }
     }
 
@@ -71,16 +82,18 @@ impl InputLayout {
         let d = kind.dim();
         let ax = ["a", "b", "c"];
         match self {
-            InputLayout::Paper => {
-                let mut v: Vec<String> = ["x_t", "y_t", "z_t"][..d]
-                    .iter()
-                    .map(|s| s.to_string())
-                    .collect();
-                v.push("P_ii".into());
-                v
-            }
-            InputLayout::LineOfSight => {
-                let mut v: Vec<String> = (0..d).map(|i| format!("dmean_{}", ax[i])).collect();
+            InputLayout::Paper => ["x_t", "y_t", "z_t"][..d]
+                .iter()
+                .map(|s| s.to_string())
+                .collect(),
+            InputLayout::LineOfSight | InputLayout::Gain => {
+                let mut v: Vec<String> = if self == InputLayout::Gain {
+                    (0..d)
+                        .flat_map(|i| (0..d).map(move |j| format!("K_{}{}", ax[i], ax[j])))
+                        .collect()
+                } else {
+                    (0..d).map(|i| format!("dmean_{}", ax[i])).collect()
+                };
                 v.extend((0..d).map(|i| format!("ln_L_{}{}", ax[i], ax[i])));
                 for i in 0..d {
                     for j in 0..i {
@@ -104,8 +117,9 @@ pub(crate) struct Frame<const D: usize> {
     pub q: SVector<f64, D>,
     /// Innovation in the frame.
     pub nu: SVector<f64, D>,
-    /// Added to the frame's log-likelihood to give the likelihood in measurement units.
-    pub ll_offset: f64,
+    /// `ln ll_scale` added to the frame's log-likelihood gives the likelihood in measurement
+    /// units (the range for range-bearing, 1 for 3D points).
+    pub ll_scale: f64,
 }
 
 #[inline]
@@ -138,7 +152,7 @@ pub(crate) fn frame2(inp: &UpdateInput, noise: &SensorNoise) -> Option<Frame<2>>
         sigma,
         q: SVector::<f64, 2>::new(noise.range * noise.range, q * noise.bearing * noise.bearing),
         nu,
-        ll_offset: r.ln(),
+        ll_scale: r,
     })
 }
 
@@ -158,7 +172,7 @@ pub(crate) fn frame3(inp: &UpdateInput, noise: &SensorNoise) -> Frame<3> {
         sigma,
         q: SVector::<f64, 3>::new(x[0] * x[0], x[1] * x[1], x[2] * x[2]),
         nu,
-        ll_offset: 0.0,
+        ll_scale: 1.0,
     }
 }
 
@@ -172,14 +186,21 @@ pub(crate) struct Innovation<const D: usize> {
 }
 
 impl<const D: usize> Frame<D> {
+    /// `S = Σ + Q` and its inverse; the likelihood and Mahalanobis distance only when
+    /// `likelihood` (NaN otherwise). `None` when `S` is not positive definite.
     #[inline]
-    pub fn innovation(&self) -> Option<Innovation<D>> {
+    pub fn innovation(&self, likelihood: bool) -> Option<Innovation<D>> {
         let s = self.sigma + SMatrix::<f64, D, D>::from_diagonal(&self.q);
         let chol = s.cholesky()?;
-        let det = chol.determinant();
         let s_inv = chol.inverse();
-        let m2 = self.nu.dot(&(s_inv * self.nu));
-        let ll = -0.5 * m2 - 0.5 * D as f64 * LN_2PI - 0.5 * det.ln() + self.ll_offset;
+        let (ll, m2) = if likelihood {
+            let det = chol.determinant();
+            let m2 = self.nu.dot(&(s_inv * self.nu));
+            let ll = -0.5 * m2 - 0.5 * D as f64 * LN_2PI - 0.5 * det.ln() + self.ll_scale.ln();
+            (ll, m2)
+        } else {
+            (f64::NAN, f64::NAN)
+        };
         Some(Innovation {
             s_inv,
             log_likelihood: ll,
@@ -237,20 +258,25 @@ impl<const D: usize> Frame<D> {
         (self.t * dw, self.t * cw * self.t.transpose())
     }
 
+    /// The innovation's standard deviations in the frame, `sqrt(σᵢᵢ + qᵢ)`.
+    #[inline]
+    pub fn innovation_std(&self) -> SVector<f64, D> {
+        SVector::<f64, D>::from_fn(|i, _| (self.sigma[(i, i)] + self.q[i]).sqrt())
+    }
+
     /// Prior standard deviations in the frame.
     #[inline]
-    fn prior_std(&self) -> SVector<f64, D> {
+    pub fn prior_std(&self) -> SVector<f64, D> {
         SVector::<f64, D>::from_fn(|i, _| self.sigma[(i, i)].max(1e-300).sqrt())
     }
 
-    /// The line-of-sight features: `ln(σᵢ/qᵢ)`, correlations `ρᵢⱼ` (i > j), and
-    /// `νᵢ / sqrt(σᵢ² + qᵢ²)`.
+    /// The prior features: `ln(σᵢ/qᵢ)` and the correlations `ρᵢⱼ` (i > j); returns how many
+    /// were written (`D + D(D−1)/2`).
     #[inline]
-    pub fn los_features(&self, out: &mut [f64]) {
-        let s = self.prior_std();
+    pub fn prior_features(&self, s: &SVector<f64, D>, out: &mut [f64]) -> usize {
         let mut k = 0;
         for i in 0..D {
-            out[k] = (s[i] / self.q[i].sqrt()).ln();
+            out[k] = 0.5 * (self.sigma[(i, i)].max(1e-300) / self.q[i]).ln();
             k += 1;
         }
         for i in 0..D {
@@ -259,15 +285,61 @@ impl<const D: usize> Frame<D> {
                 k += 1;
             }
         }
-        for i in 0..D {
-            out[k] = self.nu[i] / (self.sigma[(i, i)] + self.q[i]).sqrt();
-            k += 1;
+        k
+    }
+
+    /// The line-of-sight features: the prior features, then `νᵢ / sqrt(σᵢ² + qᵢ²)`.
+    #[inline]
+    pub fn los_features(&self, s: &SVector<f64, D>, out: &mut [f64]) {
+        let k = self.prior_features(s, out);
+        let u = self.innovation_std();
+        for (i, o) in out[k..k + D].iter_mut().enumerate() {
+            *o = self.nu[i] / u[i];
         }
     }
 
+    /// The gain targets: `K̃ᵢⱼ = Kᵢⱼ uⱼ/sᵢ` of `K = Σ S⁻¹` (row-major; `s` the prior standard
+    /// deviations, `u` the innovation's, `sqrt(σⱼⱼ + qⱼ)`), then the scaled Cholesky factor of
+    /// the posterior `cov`. The correction is `sᵢ Σⱼ K̃ᵢⱼ (νⱼ/uⱼ)`: an error in `K̃` moves the
+    /// landmark by a fraction of its prior standard deviation per standard deviation of
+    /// innovation, whatever the ratio of the frame's axes (`K̃ᵢᵢ = sqrt(σᵢᵢ/(σᵢᵢ + qᵢ))` when
+    /// uncorrelated). `None` when the posterior is not positive definite.
+    pub fn gain_targets(
+        &self,
+        inn: &Innovation<D>,
+        cov: &SMatrix<f64, D, D>,
+        out: &mut [f64],
+    ) -> Option<()> {
+        let s = self.prior_std();
+        let u = self.innovation_std();
+        let k = self.sigma * inn.s_inv;
+        for i in 0..D {
+            for j in 0..D {
+                out[i * D + j] = k[(i, j)] * u[j] / s[i];
+            }
+        }
+        scaled_cholesky_targets(&s, cov, &mut out[D * D..])
+    }
+
+    /// Inverse of [`Frame::gain_targets`]: the correction `K ν` and the covariance.
+    #[inline]
+    pub fn gain_decode(
+        &self,
+        s: &SVector<f64, D>,
+        out: &[f64],
+    ) -> (SVector<f64, D>, SMatrix<f64, D, D>) {
+        let u = self.innovation_std();
+        let corr = SVector::<f64, D>::from_fn(|i, _| {
+            (0..D)
+                .map(|j| out[i * D + j] * self.nu[j] / u[j])
+                .sum::<f64>()
+                * s[i]
+        });
+        (corr, scaled_cholesky_decode(s, &out[D * D..]))
+    }
+
     /// The line-of-sight targets of a known posterior (frame correction and covariance):
-    /// the correction over the prior standard deviation, then the Cholesky factor `L` of
-    /// `D⁻¹ Σ' D⁻¹` (`D` the prior standard deviations): `ln Lᵢᵢ`, then `Lᵢⱼ` (i > j).
+    /// the correction over the prior standard deviation, then the scaled Cholesky factor.
     /// `None` when the posterior is not positive definite.
     pub fn los_targets(
         &self,
@@ -276,45 +348,74 @@ impl<const D: usize> Frame<D> {
         out: &mut [f64],
     ) -> Option<()> {
         let s = self.prior_std();
-        let scaled = SMatrix::<f64, D, D>::from_fn(|i, j| cov[(i, j)] / (s[i] * s[j]));
-        let l = scaled.cholesky()?.l();
-        let mut k = 0;
         for i in 0..D {
-            out[k] = corr[i] / s[i];
-            k += 1;
+            out[i] = corr[i] / s[i];
         }
-        for i in 0..D {
-            out[k] = l[(i, i)].ln();
-            k += 1;
-        }
-        for i in 0..D {
-            for j in 0..i {
-                out[k] = l[(i, j)];
-                k += 1;
-            }
-        }
-        Some(())
+        scaled_cholesky_targets(&s, cov, &mut out[D..])
     }
 
-    /// Inverse of [`Frame::los_targets`]: a correction and a positive definite covariance
-    /// from network outputs (the log diagonal is clamped to ±20 so that `exp` stays finite).
+    /// Inverse of [`Frame::los_targets`].
     #[inline]
-    pub fn los_decode(&self, out: &[f64]) -> (SVector<f64, D>, SMatrix<f64, D, D>) {
-        let s = self.prior_std();
+    pub fn los_decode(
+        &self,
+        s: &SVector<f64, D>,
+        out: &[f64],
+    ) -> (SVector<f64, D>, SMatrix<f64, D, D>) {
         let corr = SVector::<f64, D>::from_fn(|i, _| out[i] * s[i]);
-        let mut l = SMatrix::<f64, D, D>::zeros();
-        for i in 0..D {
-            l[(i, i)] = out[D + i].clamp(-20.0, 20.0).exp() * s[i];
-        }
-        let mut k = 2 * D;
-        for i in 0..D {
-            for j in 0..i {
-                l[(i, j)] = out[k] * s[i];
-                k += 1;
-            }
-        }
-        (corr, l * l.transpose())
+        (corr, scaled_cholesky_decode(s, &out[D..]))
     }
+}
+
+/// The Cholesky factor `L` of `S⁻¹ Σ' S⁻¹` (`S` the prior standard deviations): `ln Lᵢᵢ`,
+/// then `Lᵢⱼ` (i > j). `None` when `Σ'` is not positive definite.
+fn scaled_cholesky_targets<const D: usize>(
+    s: &SVector<f64, D>,
+    cov: &SMatrix<f64, D, D>,
+    out: &mut [f64],
+) -> Option<()> {
+    let scaled = SMatrix::<f64, D, D>::from_fn(|i, j| cov[(i, j)] / (s[i] * s[j]));
+    let l = scaled.cholesky()?.l();
+    let mut k = 0;
+    for i in 0..D {
+        out[k] = l[(i, i)].ln();
+        k += 1;
+    }
+    for i in 0..D {
+        for j in 0..i {
+            out[k] = l[(i, j)];
+            k += 1;
+        }
+    }
+    Some(())
+}
+
+/// Inverse of [`scaled_cholesky_targets`]: always positive definite (the log diagonal is
+/// clamped to ±20 so that `exp` stays finite), and never wider than the prior along a frame
+/// axis. In the measurement frame the EKF's posterior is `Σ − Σ S⁻¹ Σ` with `Σ S⁻¹ Σ` positive
+/// semi-definite, so `Σ'ᵢᵢ ≤ Σᵢᵢ`: in the scaled factor, each row's squared norm (`Σ'ᵢᵢ/Σᵢᵢ`)
+/// is at most 1. A network's row that exceeds it is scaled back to norm 1; otherwise a
+/// landmark updated thousands of times could see its covariance grow without bound.
+#[inline]
+fn scaled_cholesky_decode<const D: usize>(s: &SVector<f64, D>, out: &[f64]) -> SMatrix<f64, D, D> {
+    let mut l = SMatrix::<f64, D, D>::zeros();
+    for i in 0..D {
+        l[(i, i)] = out[i].clamp(-20.0, 20.0).exp();
+    }
+    let mut k = D;
+    for i in 0..D {
+        for j in 0..i {
+            l[(i, j)] = out[k];
+            k += 1;
+        }
+    }
+    for i in 0..D {
+        let n2: f64 = (0..=i).map(|j| l[(i, j)] * l[(i, j)]).sum();
+        let scale = if n2 > 1.0 { n2.sqrt().recip() } else { 1.0 };
+        for j in 0..=i {
+            l[(i, j)] *= scale * s[i];
+        }
+    }
+    l * l.transpose()
 }
 
 /// The paper's inputs: prior mean (d), pose (3), observation (d).
@@ -328,12 +429,8 @@ pub(crate) fn paper_features(kind: LandmarkKind, inp: &UpdateInput, out: &mut [f
     out[d + 3..2 * d + 3].copy_from_slice(&inp.z[..d]);
 }
 
-/// The paper's targets: posterior mean (d) and the mean posterior variance `trace(Σ')/d`.
+/// The paper's targets: the posterior mean.
 pub(crate) fn paper_targets(kind: LandmarkKind, post: &LandmarkGaussian, out: &mut [f64]) {
     let d = kind.dim();
     out[..d].copy_from_slice(&post.mean[..d]);
-    out[d] = match kind {
-        LandmarkKind::RangeBearing2d => (post.cov[0] + post.cov[3]) / 2.0,
-        LandmarkKind::Point3d => (post.cov[0] + post.cov[3] + post.cov[5]) / 3.0,
-    };
 }

@@ -5,21 +5,26 @@
 //! - [`RecordingUpdater`] wraps any updater and keeps a deterministic sample of its updates as
 //!   [`TrainingRow`]s (JSON objects; NDJSON files offline, JSON strings in the store).
 //! - [`MlpModel`] is the model file (plain JSON weights, normalisation, landmark kind, input
-//!   layout and version, preset, sensor noise); [`MlpUpdater`] runs it in plain batched Rust.
+//!   layout and version, preset, sensor noise); [`MlpUpdater`] runs it in plain batched Rust:
+//!   [`kernel::Kernel`] evaluates the network in f32 on eight items at once, with the
+//!   normalisation folded into the first and last layers.
 //! - With the `train` feature, [`training`] trains models with burn (flex backend, autodiff)
 //!   and saves burn's burnpack record beside the plain model.
 //!
 //! # What the network predicts, and what stays closed form
 //!
 //! A FastSLAM particle needs three things from a landmark update: the posterior mean, the
-//! posterior covariance (the next update's prior), and the observation likelihood (the
-//! particle's weight). The likelihood is never learned: it is the Gaussian innovation
+//! posterior covariance (the next update's prior), and, in FastSLAM 1.0 or with an outlier
+//! gate, the observation likelihood (the particle's weight; the filter says whether it needs
+//! it, [`fleetslam_core::updater::UpdateNeeds`]). The likelihood is never learned: it is the Gaussian innovation
 //! likelihood `N(ν; 0, Σ + Q)` from the prior and the sensor noise, computed in a frame where
 //! the EKF's Jacobian is the identity (see [`frame`]), so particle weights and outlier gating
 //! are exactly the EKF's. The network predicts the posterior mean; the `default` preset's
 //! network also predicts the posterior covariance as a Cholesky factor (always positive
-//! definite); the `paper` preset's single covariance output cannot form a covariance, so its
-//! covariance is the EKF's closed form `Σ − Σ (Σ + Q)⁻¹ Σ`.
+//! definite); the `structured` preset's network predicts the gain (so the mean is exactly
+//! linear in the innovation) and the covariance factor from the prior and the noise alone;
+//! the `paper` preset's network predicts the mean, and its covariance is the EKF's closed
+//! form `Σ − Σ (Σ + Q)⁻¹ Σ`.
 //!
 //! ```no_run
 //! use fleetslam_learned::{MlpModel, MlpUpdater};
@@ -32,13 +37,14 @@
 pub mod dataset;
 pub mod frame;
 pub mod inference;
+pub mod kernel;
 pub mod model;
 pub mod recorder;
 pub mod row;
 #[cfg(feature = "train")]
 pub mod training;
 
-pub use dataset::{UpdaterError, estimate_noise, updater_error};
+pub use dataset::{RunSplit, UpdaterError, estimate_noise, split_runs, updater_error};
 pub use frame::InputLayout;
 pub use inference::MlpUpdater;
 pub use model::{Activation, CovarianceSource, MlpModel, STORE_MODEL_KIND};

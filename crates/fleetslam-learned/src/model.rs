@@ -14,15 +14,10 @@ pub const STORE_MODEL_KIND: &str = "mlp_updater";
 pub const MODEL_FORMAT: &str = "fleetslam-mlp";
 /// The version of the model file format this build reads and writes.
 pub const MODEL_FORMAT_VERSION: u32 = 1;
-/// The widest hidden layer the plain forward pass supports.
+/// The widest hidden layer the inference kernel supports.
 pub const MAX_WIDTH: usize = 256;
 /// The most network inputs or outputs of any layout.
 pub const MAX_IO: usize = 16;
-
-thread_local! {
-    /// Two hidden-activation buffers per thread for the plain forward pass.
-    static SCRATCH: std::cell::RefCell<Vec<f32>> = std::cell::RefCell::new(vec![0.0; 2 * MAX_WIDTH]);
-}
 
 /// Hidden-layer activation. The output layer is always linear.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -104,12 +99,22 @@ pub struct DenseLayer {
     pub bias: Vec<f32>,
 }
 
-/// Per-feature standardisation: `(v − mean) / std`.
+/// Per-feature standardisation: `(v − mean) / std`, and the range the training data spanned.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Normalization {
     pub mean: Vec<f64>,
     pub std: Vec<f64>,
+    /// Smallest and largest value of each column in the training data. The inference kernel
+    /// clamps the whitened layouts' inputs (`line_of_sight`, `gain`) to this range: a ReLU
+    /// network extrapolates linearly, and a landmark observed far longer than any in the
+    /// training runs (a prior much tighter than the noise) would otherwise get a gain or a
+    /// covariance growth the network never learned, which repeated updates amplify. Empty:
+    /// no clamping.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub min: Vec<f64>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub max: Vec<f64>,
 }
 
 impl Normalization {
@@ -130,6 +135,17 @@ impl Normalization {
                 *s += (v - m) * (v - m);
             }
         }
+        let mut min = vec![f64::INFINITY; width];
+        let mut max = vec![f64::NEG_INFINITY; width];
+        for row in data.chunks_exact(width) {
+            for ((lo, hi), v) in min.iter_mut().zip(max.iter_mut()).zip(row) {
+                *lo = lo.min(*v);
+                *hi = hi.max(*v);
+            }
+        }
+        if data.len() < width {
+            (min, max) = (Vec::new(), Vec::new());
+        }
         let std = var
             .iter()
             .map(|s| {
@@ -141,7 +157,12 @@ impl Normalization {
                 }
             })
             .collect();
-        Self { mean, std }
+        Self {
+            mean,
+            std,
+            min,
+            max,
+        }
     }
 }
 
@@ -281,63 +302,21 @@ impl MlpModel {
             {
                 return bad(format!("{name} has a non-finite value or a std <= 0"));
             }
+            let ranged = !norm.min.is_empty() || !norm.max.is_empty();
+            if ranged
+                && (norm.min.len() != w
+                    || norm.max.len() != w
+                    || norm
+                        .min
+                        .iter()
+                        .zip(&norm.max)
+                        .any(|(lo, hi)| !(lo.is_finite() && hi.is_finite() && lo <= hi)))
+            {
+                return bad(format!(
+                    "{name}: min and max must both be empty or hold {w} finite values with min <= max"
+                ));
+            }
         }
         Ok(())
-    }
-
-    /// The network on one standardised input (plain Rust, f32). `x` holds `n_in` values and
-    /// `y` receives `n_out`. Hidden activations live in a per-thread scratch buffer, so a
-    /// call neither allocates nor clears memory.
-    #[inline]
-    pub fn forward_normalized(&self, x: &[f32], y: &mut [f32]) {
-        SCRATCH.with(|s| {
-            let mut s = s.borrow_mut();
-            let (a, b) = s.split_at_mut(MAX_WIDTH);
-            self.forward_in(x, y, a, b);
-        })
-    }
-
-    #[inline]
-    fn forward_in(&self, x: &[f32], y: &mut [f32], a: &mut [f32], b: &mut [f32]) {
-        let (mut cur, mut next) = (a, b);
-        cur[..x.len()].copy_from_slice(x);
-        let last = self.layers.len() - 1;
-        for (k, l) in self.layers.iter().enumerate() {
-            // Output-major accumulation: each input adds its row of weights to every
-            // output at once, a loop without a reduction that the compiler vectorises.
-            let out = &mut next[..l.outputs];
-            out.copy_from_slice(&l.bias);
-            for (i, xi) in cur[..l.inputs].iter().enumerate() {
-                let w = &l.weights[i * l.outputs..(i + 1) * l.outputs];
-                for (o, wi) in out.iter_mut().zip(w) {
-                    *o += xi * wi;
-                }
-            }
-            if k != last && self.activation != Activation::Identity {
-                for o in out.iter_mut() {
-                    *o = self.activation.apply(*o);
-                }
-            }
-            std::mem::swap(&mut cur, &mut next);
-        }
-        y.copy_from_slice(&cur[..y.len()]);
-    }
-
-    /// The network on raw features: standardises, runs, de-standardises.
-    #[inline]
-    pub fn predict(&self, features: &[f64], out: &mut [f64]) {
-        let mut x = [0f32; MAX_IO];
-        let n_in = features.len();
-        let norm = &self.input_norm;
-        for (((xi, f), m), s) in x.iter_mut().zip(features).zip(&norm.mean).zip(&norm.std) {
-            *xi = ((f - m) / s) as f32;
-        }
-        let mut y = [0f32; MAX_IO];
-        let n_out = out.len();
-        self.forward_normalized(&x[..n_in], &mut y[..n_out]);
-        let norm = &self.output_norm;
-        for (((o, yi), m), s) in out.iter_mut().zip(&y).zip(&norm.mean).zip(&norm.std) {
-            *o = *yi as f64 * s + m;
-        }
     }
 }

@@ -12,7 +12,9 @@ use crate::LearnedError;
 use crate::row::TrainingRow;
 use fleetslam_core::pose::Pose2;
 use fleetslam_core::sensor::LandmarkKind;
-use fleetslam_core::updater::{LandmarkGaussian, LandmarkUpdater, UpdateInput, UpdateOutput};
+use fleetslam_core::updater::{
+    LandmarkGaussian, LandmarkUpdater, UpdateInput, UpdateNeeds, UpdateOutput,
+};
 use std::collections::BinaryHeap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -240,8 +242,16 @@ impl LandmarkUpdater for RecordingUpdater {
         self.inner.initialize(pose, z)
     }
 
-    fn update_batch(&self, inputs: &[UpdateInput], outputs: &mut [UpdateOutput]) {
-        self.inner.update_batch(inputs, outputs);
+    /// Always asks the wrapped updater for the likelihood too: a training row holds the
+    /// whole update.
+    fn update_batch(
+        &self,
+        _needs: UpdateNeeds,
+        inputs: &[UpdateInput],
+        outputs: &mut [UpdateOutput],
+    ) {
+        self.inner
+            .update_batch(UpdateNeeds::PosteriorAndLikelihood, inputs, outputs);
         self.seen.fetch_add(inputs.len() as u64, Ordering::Relaxed);
         self.record(inputs, outputs);
     }

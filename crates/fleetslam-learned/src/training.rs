@@ -1,15 +1,17 @@
 //! Training with burn (feature `train`): autodiff on the flex CPU backend.
 //!
-//! `train` encodes the rows for the preset's layout, standardises inputs and targets, splits
-//! train and validation sets, fits by mini-batch gradient descent on the mean squared error
-//! with early stopping on the validation loss (the best epoch's weights are kept), and
-//! reports the validation error of every network output and of the resulting updater against
-//! the EKF's logged results.
+//! `train` splits the runs into training, validation and test runs (never rows: see
+//! [`split_runs`]), encodes the rows for the preset's layout, standardises inputs and targets
+//! on the training set, fits by mini-batch gradient descent on the mean squared error with
+//! early stopping on the validation loss (the best epoch's weights are kept), and reports the
+//! error of every network output and of the resulting updater against the EKF's logged
+//! results on the test runs only, which played no part in training or stopping.
 
 use crate::LearnedError;
-use crate::dataset::{Encoded, UpdaterError, encode, estimate_noise, split, updater_error};
+use crate::dataset::{Encoded, UpdaterError, encode, estimate_noise, split_runs, updater_error};
 use crate::frame::InputLayout;
 use crate::inference::MlpUpdater;
+use crate::kernel::Kernel;
 use crate::model::{
     Activation, CovarianceSource, DenseLayer, MAX_WIDTH, MODEL_FORMAT, MODEL_FORMAT_VERSION,
     MlpModel, Normalization,
@@ -65,8 +67,10 @@ pub struct TrainConfig {
     pub lr: f64,
     pub epochs: usize,
     pub batch_size: usize,
-    /// Fraction of rows held out for validation and early stopping.
-    pub val_split: f64,
+    /// Runs held out for validation and early stopping.
+    pub val_runs: usize,
+    /// Runs held out for the test report (0: no test report).
+    pub test_runs: usize,
     pub seed: u64,
     /// Stop after this many epochs without a better validation loss.
     pub patience: usize,
@@ -95,7 +99,8 @@ impl TrainConfig {
             lr: 0.7,
             epochs: 1000,
             batch_size: 64,
-            val_split: 0.2,
+            val_runs: 1,
+            test_runs: 1,
             seed: 1,
             patience: 50,
             noise: None,
@@ -114,23 +119,39 @@ impl TrainConfig {
             activation: Activation::Relu,
             optimizer: Optimizer::Adam,
             lr: 3e-3,
-            epochs: 300,
+            epochs: 500,
             batch_size: 256,
-            val_split: 0.2,
+            val_runs: 1,
+            test_runs: 1,
             seed: 1,
-            patience: 25,
+            patience: 50,
             noise: None,
             covariance: CovarianceSource::Network,
         }
     }
 
-    /// A preset by name: `paper` or `default`.
+    /// The structured network: the `gain` layout (prior and noise in, gain and posterior
+    /// factor out; the mean stays linear in the innovation), 2 × 16 ReLU, Adam.
+    pub fn structured(id: &str) -> Self {
+        Self {
+            preset: "structured".into(),
+            layout: InputLayout::Gain,
+            hidden: vec![16, 16],
+            ..Self::default_preset(id)
+        }
+    }
+
+    /// The preset names [`TrainConfig::preset`] takes.
+    pub const PRESETS: [&str; 3] = ["paper", "default", "structured"];
+
+    /// A preset by name: `paper`, `default` or `structured`.
     pub fn preset(name: &str, id: &str) -> Result<Self, LearnedError> {
         match name {
             "paper" => Ok(Self::paper(id)),
             "default" => Ok(Self::default_preset(id)),
+            "structured" => Ok(Self::structured(id)),
             o => Err(LearnedError::Config(format!(
-                "unknown preset {o:?}: use paper or default"
+                "unknown preset {o:?}: use paper, default or structured"
             ))),
         }
     }
@@ -149,11 +170,8 @@ impl TrainConfig {
         if self.epochs == 0 || self.batch_size == 0 {
             return bad("epochs and batch size must be > 0".into());
         }
-        if !(self.val_split > 0.0 && self.val_split < 1.0) {
-            return bad(format!(
-                "val split must be in (0, 1), got {}",
-                self.val_split
-            ));
+        if self.val_runs == 0 {
+            return bad("at least one validation run is needed (val_runs >= 1)".into());
         }
         Ok(())
     }
@@ -319,6 +337,11 @@ pub struct TrainReport {
     pub kind: LandmarkKind,
     pub train_rows: usize,
     pub val_rows: usize,
+    pub test_rows: usize,
+    /// Indices of the runs (files or store runs, in the order given) of each set.
+    pub train_runs: Vec<usize>,
+    pub val_runs: Vec<usize>,
+    pub test_runs: Vec<usize>,
     pub skipped_rows: usize,
     pub noise: SensorNoise,
     pub epochs_run: usize,
@@ -328,9 +351,10 @@ pub struct TrainReport {
     pub first_val_loss: f64,
     pub final_train_loss: f64,
     pub seconds: f64,
+    /// Each output's error on the test runs (empty without test runs).
     pub outputs: Vec<OutputError>,
-    /// The updater's validation error against the EKF's logged results.
-    pub updater: UpdaterError,
+    /// The updater's error against the EKF's logged results on the test runs.
+    pub updater: Option<UpdaterError>,
 }
 
 /// The result of training.
@@ -368,27 +392,34 @@ fn mse(net: &BurnMlp, x: &[f32], y: &[f32], n_in: usize, n_out: usize, device: &
     loss.into_scalar::<f32>() as f64
 }
 
-/// Trains a model on `rows`. `progress(epoch, epochs, train_loss, val_loss)` is called after
-/// every epoch.
+/// Trains a model on `runs` (each the rows of one run), split by run. `progress(epoch,
+/// epochs, train_loss, val_loss)` is called after every epoch.
 pub fn train(
-    rows: &[TrainingRow],
+    runs: &[Vec<TrainingRow>],
     cfg: &TrainConfig,
     mut progress: impl FnMut(usize, usize, f64, f64),
 ) -> Result<Trained, LearnedError> {
     cfg.validate()?;
     let started = std::time::Instant::now();
-    let kind = match cfg.kind.or_else(|| rows.first().map(|r| r.kind)) {
+    let kind = match cfg
+        .kind
+        .or_else(|| runs.iter().flatten().next().map(|r| r.kind))
+    {
         Some(k) => k,
         None => return Err(LearnedError::Data("no training rows".into())),
     };
-    let rows: Vec<TrainingRow> = rows.iter().filter(|r| r.kind == kind).copied().collect();
+    let runs: Vec<Vec<TrainingRow>> = runs
+        .iter()
+        .map(|r| r.iter().filter(|r| r.kind == kind).copied().collect())
+        .collect();
+    let sets = split_runs(&runs, cfg.val_runs, cfg.test_runs, cfg.seed)?;
     let noise = match cfg.noise {
         Some(n) => n,
-        None => estimate_noise(&rows, kind)?,
+        None => estimate_noise(&sets.train, kind)?,
     };
-    let (train_rows, val_rows) = split(&rows, cfg.val_split, cfg.seed);
-    let (tr, skip_t) = encode(&train_rows, kind, cfg.layout, &noise);
-    let (va, skip_v) = encode(&val_rows, kind, cfg.layout, &noise);
+    let (tr, skip_t) = encode(&sets.train, kind, cfg.layout, &noise);
+    let (va, skip_v) = encode(&sets.val, kind, cfg.layout, &noise);
+    let (te, skip_e) = encode(&sets.test, kind, cfg.layout, &noise);
     if tr.len() < 2 || va.is_empty() {
         return Err(LearnedError::Data(format!(
             "too few usable rows ({} train, {} validation) of kind {}",
@@ -467,33 +498,42 @@ pub fn train(
     };
     model.validate()?;
 
-    // Per-output errors, through the plain path.
+    // Per-output errors on the test runs, through the inference kernel.
     let names = cfg.layout.output_names(kind);
+    let kernel = Kernel::new(&model);
     let mut sq = vec![0.0; n_out];
     let mut pred = vec![0.0; n_out];
-    for (x, y) in va.x.chunks_exact(n_in).zip(va.y.chunks_exact(n_out)) {
-        model.predict(x, &mut pred);
+    for (x, y) in te.x.chunks_exact(n_in).zip(te.y.chunks_exact(n_out)) {
+        kernel.predict(x, &mut pred);
         for ((s, p), t) in sq.iter_mut().zip(&pred).zip(y) {
             *s += (p - t).powi(2);
         }
     }
-    let nv = va.len() as f64;
-    let outputs = (0..n_out)
-        .map(|k| {
-            let rmse = (sq[k] / nv).sqrt();
-            OutputError {
-                name: names[k].clone(),
-                rmse,
-                normalized_rmse: rmse / model.output_norm.std[k],
-            }
-        })
-        .collect();
+    let nt = te.len() as f64;
+    let outputs = if te.is_empty() {
+        Vec::new()
+    } else {
+        (0..n_out)
+            .map(|k| {
+                let rmse = (sq[k] / nt).sqrt();
+                OutputError {
+                    name: names[k].clone(),
+                    rmse,
+                    normalized_rmse: rmse / model.output_norm.std[k],
+                }
+            })
+            .collect()
+    };
     let updater = MlpUpdater::new(model.clone())?;
     let report = TrainReport {
         kind,
         train_rows: tr.len(),
         val_rows: va.len(),
-        skipped_rows: skip_t + skip_v,
+        test_rows: te.len(),
+        train_runs: sets.train_runs.clone(),
+        val_runs: sets.val_runs.clone(),
+        test_runs: sets.test_runs.clone(),
+        skipped_rows: skip_t + skip_v + skip_e,
         noise,
         epochs_run,
         best_epoch,
@@ -502,7 +542,7 @@ pub fn train(
         final_train_loss: train_loss,
         seconds: started.elapsed().as_secs_f64(),
         outputs,
-        updater: updater_error(&updater, &val_rows),
+        updater: (!sets.test.is_empty()).then(|| updater_error(&updater, &sets.test)),
     };
     model.metadata = serde_json::json!({ "config": cfg, "report": report });
     Ok(Trained {

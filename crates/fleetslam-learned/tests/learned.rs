@@ -1,16 +1,19 @@
-//! The learned updater end to end: training reduces the error, models round-trip, the plain
-//! path equals burn's forward pass, mismatched models are refused, the recorder is
-//! deterministic, and an MLP inside FastSLAM stays finite and close to the EKF.
+//! The learned updater end to end: training (split by run) reduces the error, models
+//! round-trip, the inference kernel equals burn's forward pass, the posterior does not depend
+//! on what the filter asks for or on how items are batched, the structured model's mean is
+//! linear in the innovation, mismatched models are refused, the recorder is deterministic,
+//! and an MLP inside FastSLAM stays finite and close to the EKF.
 
 use fleetslam_core::config::FilterConfig;
 use fleetslam_core::ekf::EkfUpdater;
 use fleetslam_core::filter::FastSlam;
 use fleetslam_core::sensor::{LandmarkKind, SensorNoise};
-use fleetslam_core::updater::{LandmarkUpdater, UpdateOutput};
+use fleetslam_core::updater::{LandmarkUpdater, UpdateInput, UpdateNeeds, UpdateOutput};
 use fleetslam_data::evaluate::{EvalOptions, evaluate};
 use fleetslam_data::run::{TrajectoryEstimate, run_log};
 use fleetslam_data::sim::{SimConfig, simulate};
 use fleetslam_learned::dataset::synthetic_rows;
+use fleetslam_learned::kernel::Kernel;
 use fleetslam_learned::model::MlpModel;
 use fleetslam_learned::training::{
     BurnMlp, BurnPredictor, TrainConfig, Trained, save_model_dir, train,
@@ -37,12 +40,19 @@ fn small_config(id: &str) -> TrainConfig {
     c
 }
 
+/// `n` generated runs of `per_run` updates each (one seed per run).
+fn runs(kind: LandmarkKind, n: u64, per_run: usize) -> Vec<Vec<TrainingRow>> {
+    (1..=n)
+        .map(|seed| synthetic_rows(kind, &noise(), per_run, seed))
+        .collect()
+}
+
 /// One small model, trained once for the tests that only need a model.
 fn trained_2d() -> &'static Trained {
     static T: OnceLock<Trained> = OnceLock::new();
     T.get_or_init(|| {
-        let rows = synthetic_rows(LandmarkKind::RangeBearing2d, &noise(), 4000, 1);
-        train(&rows, &small_config("test-2d"), |_, _, _, _| {}).unwrap()
+        let runs = runs(LandmarkKind::RangeBearing2d, 5, 1100);
+        train(&runs, &small_config("test-2d"), |_, _, _, _| {}).unwrap()
     })
 }
 
@@ -56,12 +66,27 @@ fn training_reduces_validation_error_below_a_bound() {
         r.first_val_loss,
         r.best_val_loss
     );
-    // The updater's posterior mean is much closer to the EKF's than not updating.
-    assert!(
-        r.updater.mean_rmse < 0.3 * r.updater.no_update_rmse,
-        "{:?}",
-        r.updater
+    // Three runs trained, one validated, one tested: whole runs, never rows.
+    assert_eq!(
+        (r.train_runs.len(), r.val_runs.len(), r.test_runs.len()),
+        (3, 1, 1)
     );
+    let mut all: Vec<usize> = [&r.train_runs, &r.val_runs, &r.test_runs]
+        .into_iter()
+        .flatten()
+        .copied()
+        .collect();
+    all.sort_unstable();
+    assert_eq!(all, vec![0, 1, 2, 3, 4]);
+    assert_eq!(
+        r.train_rows + r.val_rows + r.test_rows + r.skipped_rows,
+        5500
+    );
+    assert!(r.val_rows > 1000 && r.test_rows > 1000, "{r:?}");
+    // The updater's posterior mean (on the test run) is much closer to the EKF's than not
+    // updating.
+    let u = r.updater.unwrap();
+    assert!(u.mean_rmse < 0.3 * u.no_update_rmse, "{u:?}");
     // The sensor noise was recovered from the EKF's updates.
     assert!(
         (r.noise.range - 0.1).abs() < 1e-6 && (r.noise.bearing - 0.03).abs() < 1e-6,
@@ -69,18 +94,19 @@ fn training_reduces_validation_error_below_a_bound() {
         r.noise
     );
     // Likelihood and Mahalanobis distance are the EKF's closed form.
-    assert!(r.updater.log_likelihood_rmse < 1e-6 && r.updater.mahalanobis2_rmse < 1e-6);
-    assert_eq!(r.updater.rejected, 0);
+    assert!(u.log_likelihood_rmse < 1e-6 && u.mahalanobis2_rmse < 1e-6);
+    assert_eq!(u.rejected, 0);
 }
 
 #[test]
 fn paper_preset_trains_a_two_neuron_identity_network() {
-    let rows = synthetic_rows(LandmarkKind::Point3d, &noise(), 1500, 2);
     let mut c = TrainConfig::paper("test-paper");
     c.epochs = 15;
-    let t = train(&rows, &c, |_, _, _, _| {}).unwrap();
+    let t = train(&runs(LandmarkKind::Point3d, 3, 500), &c, |_, _, _, _| {}).unwrap();
     assert_eq!(t.model.hidden(), vec![2]);
-    assert_eq!(t.model.layout.dims(LandmarkKind::Point3d), (9, 4));
+    // The new coordinates only: the paper's P_ii output is not trained (the covariance is
+    // the closed form).
+    assert_eq!(t.model.layout.dims(LandmarkKind::Point3d), (9, 3));
     assert!(t.report.best_val_loss.is_finite());
     assert!(t.report.best_val_loss <= t.report.first_val_loss);
 }
@@ -100,8 +126,8 @@ fn saved_model_reloads_and_predicts_identically() {
     );
     let mut oa = vec![UpdateOutput::default(); inputs.len()];
     let mut ob = oa.clone();
-    a.update_batch(&inputs, &mut oa);
-    b.update_batch(&inputs, &mut ob);
+    a.update_batch(UpdateNeeds::PosteriorAndLikelihood, &inputs, &mut oa);
+    b.update_batch(UpdateNeeds::PosteriorAndLikelihood, &inputs, &mut ob);
     assert_eq!(oa, ob);
     // burn's own record reloads to the same weights.
     let net = BurnMlp::load_burnpack(
@@ -114,23 +140,130 @@ fn saved_model_reloads_and_predicts_identically() {
 }
 
 #[test]
-fn plain_forward_matches_burn_forward() {
-    let t = trained_2d();
-    let (n_in, n_out) = t.model.layout.dims(t.model.kind);
+fn inference_kernel_matches_burn_forward() {
+    // The network itself: without the training-range clamp (tested in the kernel's unit
+    // tests), which burn's forward does not apply.
+    let mut m = trained_2d().model.clone();
+    m.input_norm.min.clear();
+    m.input_norm.max.clear();
+    let m = &m;
+    let (n_in, n_out) = m.layout.dims(m.kind);
     let n = 500;
+    // Standardised inputs for burn; the kernel takes the raw features they stand for.
     let x: Vec<f32> = (0..n * n_in)
         .map(|i| ((i * 37 % 101) as f32 / 50.0) - 1.0)
         .collect();
-    let burn = BurnPredictor::new(&t.model).forward_normalized(&x);
-    let mut y = vec![0f32; n_out];
-    let mut worst = 0f32;
+    let burn = BurnPredictor::new(m).forward_normalized(&x);
+    let kernel = Kernel::new(m);
+    let mut worst = 0f64;
+    let mut raw = vec![0.0; n_in];
+    let mut y = vec![0.0; n_out];
     for (k, xi) in x.chunks_exact(n_in).enumerate() {
-        t.model.forward_normalized(xi, &mut y);
+        for i in 0..n_in {
+            raw[i] = xi[i] as f64 * m.input_norm.std[i] + m.input_norm.mean[i];
+        }
+        kernel.predict(&raw, &mut y);
         for j in 0..n_out {
-            worst = worst.max((y[j] - burn[k * n_out + j]).abs());
+            let b = burn[k * n_out + j] as f64 * m.output_norm.std[j] + m.output_norm.mean[j];
+            worst = worst.max((y[j] - b).abs() / m.output_norm.std[j]);
         }
     }
-    assert!(worst < 1e-4, "largest difference {worst}");
+    assert!(worst < 1e-4, "largest difference {worst} output std");
+}
+
+/// Models of every layout, trained briefly on generated 2D and 3D updates.
+fn layout_models() -> &'static Vec<MlpModel> {
+    static M: OnceLock<Vec<MlpModel>> = OnceLock::new();
+    M.get_or_init(|| {
+        let mut out = Vec::new();
+        for kind in [LandmarkKind::RangeBearing2d, LandmarkKind::Point3d] {
+            let runs = runs(kind, 3, 600);
+            for preset in TrainConfig::PRESETS {
+                let mut c =
+                    TrainConfig::preset(preset, &format!("{preset}-{}", kind.as_str())).unwrap();
+                c.epochs = 4;
+                c.hidden = if preset == "paper" {
+                    vec![2]
+                } else {
+                    vec![8, 8]
+                };
+                out.push(train(&runs, &c, |_, _, _, _| {}).unwrap().model);
+            }
+        }
+        out
+    })
+}
+
+fn inputs_of(kind: LandmarkKind, n: usize, seed: u64) -> Vec<UpdateInput> {
+    synthetic_rows(kind, &noise(), n, seed)
+        .iter()
+        .map(TrainingRow::input)
+        .collect()
+}
+
+/// The posterior is the same bits whether the filter asks for the likelihood or not, whether
+/// an item is updated alone or in a batch (any lane of a pass) and whether the pass runs with
+/// AVX2 or the baseline instruction set; the likelihood, when asked, is the EKF's.
+#[test]
+fn posterior_depends_neither_on_needs_nor_on_batching() {
+    for m in layout_models() {
+        let u = MlpUpdater::new(m.clone()).unwrap();
+        let ekf = EkfUpdater::new(m.kind, &m.noise);
+        let inputs = inputs_of(m.kind, 203, 21);
+        let mut full = vec![UpdateOutput::default(); inputs.len()];
+        let mut post = full.clone();
+        u.update_batch(UpdateNeeds::PosteriorAndLikelihood, &inputs, &mut full);
+        u.update_batch(UpdateNeeds::Posterior, &inputs, &mut post);
+        for (k, (f, p)) in full.iter().zip(&post).enumerate() {
+            assert_eq!(f.posterior, p.posterior, "{} item {k}", m.id);
+            assert!(p.log_likelihood.is_nan() && p.mahalanobis2.is_nan());
+            let e = ekf.update(&inputs[k]);
+            assert!(
+                (f.log_likelihood - e.log_likelihood).abs() < 1e-9,
+                "{} item {k}: {} vs {}",
+                m.id,
+                f.log_likelihood,
+                e.log_likelihood
+            );
+            let alone = u.update(&inputs[k]);
+            assert_eq!(alone.posterior, f.posterior, "{} item {k} alone", m.id);
+        }
+        // The baseline instruction set gives the same bits as the dispatched one.
+        let base = MlpUpdater::new(m.clone()).unwrap().baseline_simd();
+        let mut b = vec![UpdateOutput::default(); inputs.len()];
+        base.update_batch(UpdateNeeds::PosteriorAndLikelihood, &inputs, &mut b);
+        assert_eq!(b, full, "{}", m.id);
+    }
+}
+
+/// The structured model's correction is `K ν`: none when the observation is exactly the
+/// predicted one, and twice the innovation moves the landmark twice as far.
+#[test]
+fn structured_mean_is_linear_in_the_innovation() {
+    let m = layout_models()
+        .iter()
+        .find(|m| m.layout == InputLayout::Gain && m.kind == LandmarkKind::Point3d)
+        .unwrap();
+    let u = MlpUpdater::new(m.clone()).unwrap();
+    for inp in inputs_of(LandmarkKind::Point3d, 50, 5) {
+        let (s, c) = inp.pose.theta.sin_cos();
+        let d = [
+            inp.prior.mean[0] - inp.pose.x,
+            inp.prior.mean[1] - inp.pose.y,
+            inp.prior.mean[2],
+        ];
+        let zhat = [c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]];
+        let at = |k: f64| {
+            let z = std::array::from_fn(|i| zhat[i] + k * (inp.z[i] - zhat[i]));
+            u.update(&UpdateInput { z, ..inp }).posterior.mean
+        };
+        let (m0, m1, m2) = (at(0.0), at(1.0), at(2.0));
+        for i in 0..3 {
+            assert!((m0[i] - inp.prior.mean[i]).abs() < 1e-9, "{m0:?}");
+            let (d1, d2) = (m1[i] - m0[i], m2[i] - m0[i]);
+            assert!((d2 - 2.0 * d1).abs() < 1e-9 * (1.0 + d1.abs()), "{d1} {d2}");
+        }
+    }
 }
 
 #[test]
@@ -197,7 +330,11 @@ fn small_sim(kind: LandmarkKind, seed: u64) -> fleetslam_data::sim::Simulated {
 }
 
 fn recorded_run(threads: usize, rate: f64, cap: usize) -> (Vec<TrainingRow>, u64) {
-    let sim = small_sim(LandmarkKind::RangeBearing2d, 4);
+    recorded_sim(4, threads, rate, cap)
+}
+
+fn recorded_sim(sim_seed: u64, threads: usize, rate: f64, cap: usize) -> (Vec<TrainingRow>, u64) {
+    let sim = small_sim(LandmarkKind::RangeBearing2d, sim_seed);
     let mut cfg = FilterConfig::from_header(&sim.log.header);
     cfg.particles = 100;
     let ekf: Arc<dyn LandmarkUpdater> =
@@ -236,11 +373,15 @@ fn recorder_is_deterministic_and_respects_rate_and_cap() {
 
 #[test]
 fn mlp_inside_fastslam_stays_finite_and_close_to_the_ekf() {
-    // Train on the EKF's updates of one simulation, score on another seed's.
-    let (rows, _) = recorded_run(2, 0.5, 40_000);
+    // Train on the EKF's updates of three simulations (one each for training, validation
+    // and test), score on another seed's.
+    let runs: Vec<Vec<TrainingRow>> = [4, 5, 6]
+        .iter()
+        .map(|&s| recorded_sim(s, 2, 0.5, 40_000).0)
+        .collect();
     let mut c = small_config("sim-mlp");
     c.epochs = 60;
-    let t = train(&rows, &c, |_, _, _, _| {}).unwrap();
+    let t = train(&runs, &c, |_, _, _, _| {}).unwrap();
     let sim = small_sim(LandmarkKind::RangeBearing2d, 11);
     let mut cfg = FilterConfig::from_header(&sim.log.header);
     cfg.particles = 100;

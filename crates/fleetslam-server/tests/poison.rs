@@ -10,7 +10,9 @@ use fleetslam_core::ekf::EkfUpdater;
 use fleetslam_core::filter::FastSlam;
 use fleetslam_core::log::{Log, Record};
 use fleetslam_core::pose::Pose2;
-use fleetslam_core::updater::{LandmarkGaussian, LandmarkUpdater, UpdateInput, UpdateOutput};
+use fleetslam_core::updater::{
+    LandmarkGaussian, LandmarkUpdater, UpdateInput, UpdateNeeds, UpdateOutput,
+};
 use fleetslam_data::run::{RunOutput, TrajectoryEstimate, run_log};
 use fleetslam_server::app::{ApiConfig, AppState, app};
 use fleetslam_server::coordinator::{self, CoordinatorConfig, Event};
@@ -40,12 +42,17 @@ impl LandmarkUpdater for PanicOn {
         assert!(z[0] != self.magic, "poison measurement {}", z[0]);
         self.inner.initialize(pose, z)
     }
-    fn update_batch(&self, inputs: &[UpdateInput], outputs: &mut [UpdateOutput]) {
+    fn update_batch(
+        &self,
+        needs: UpdateNeeds,
+        inputs: &[UpdateInput],
+        outputs: &mut [UpdateOutput],
+    ) {
         assert!(
             inputs.iter().all(|i| i.z[0] != self.magic),
             "poison measurement in a batch"
         );
-        self.inner.update_batch(inputs, outputs)
+        self.inner.update_batch(needs, inputs, outputs)
     }
 }
 

@@ -8,7 +8,9 @@ use fleetslam_core::config::FilterConfig;
 use fleetslam_core::ekf::EkfUpdater;
 use fleetslam_core::filter::FastSlam;
 use fleetslam_core::pose::Pose2;
-use fleetslam_core::updater::{LandmarkGaussian, LandmarkUpdater, UpdateInput, UpdateOutput};
+use fleetslam_core::updater::{
+    LandmarkGaussian, LandmarkUpdater, UpdateInput, UpdateNeeds, UpdateOutput,
+};
 use fleetslam_server::app::{ApiConfig, AppState, app};
 use fleetslam_store::{NewRun, Store};
 use serde_json::{Value, json};
@@ -47,9 +49,14 @@ impl LandmarkUpdater for Gated {
         self.wait();
         self.inner.initialize(pose, z)
     }
-    fn update_batch(&self, inputs: &[UpdateInput], outputs: &mut [UpdateOutput]) {
+    fn update_batch(
+        &self,
+        needs: UpdateNeeds,
+        inputs: &[UpdateInput],
+        outputs: &mut [UpdateOutput],
+    ) {
         self.wait();
-        self.inner.update_batch(inputs, outputs)
+        self.inner.update_batch(needs, inputs, outputs)
     }
 }
 

@@ -24,6 +24,17 @@ pub fn ok(args: &[&str]) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
+/// Runs `fleetslam args`, which must fail; returns its standard error.
+pub fn fails(args: &[&str]) -> String {
+    let out = fleetslam(args);
+    assert!(
+        !out.status.success(),
+        "fleetslam {args:?} succeeded:\n{}",
+        String::from_utf8_lossy(&out.stdout)
+    );
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
 pub fn json(path: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
 }

@@ -13,7 +13,7 @@ use crate::motion::covariance_in_world_sc;
 use crate::pose::wrap_angle;
 use crate::rng::stream;
 use crate::stats::log_add_exp;
-use crate::updater::{UpdateInput, UpdateOutput};
+use crate::updater::{UpdateInput, UpdateNeeds, UpdateOutput};
 use nalgebra::Matrix3;
 use std::time::Instant;
 
@@ -243,12 +243,19 @@ fn update_landmarks(
         }
         outputs.clear();
         outputs.resize(inputs.len(), UpdateOutput::default());
+        // The likelihood only when a particle is weighed by it or the outlier gate reads the
+        // Mahalanobis distance (FastSLAM 2.0 weighed the particles in its proposal).
+        let needs = if outlier.is_some() || who.iter().any(|w| w.2) {
+            UpdateNeeds::PosteriorAndLikelihood
+        } else {
+            UpdateNeeds::Posterior
+        };
         let t0 = Instant::now();
         for (i, o) in inputs
             .chunks(cfg.batch_size)
             .zip(outputs.chunks_mut(cfg.batch_size))
         {
-            ctx.updater.update_batch(i, o);
+            ctx.updater.update_batch(needs, i, o);
         }
         stats.update_nanos += t0.elapsed().as_nanos() as u64;
         stats.landmark_updates += inputs.len() as u64;

@@ -444,14 +444,11 @@ pub fn bench_forward(model: &MlpModel, secs: f64) -> (Vec<f64>, Vec<f64>) {
         let lanes: Vec<[f32; LANES]> = (0..passes * n_in)
             .map(|i| std::array::from_fn(|l| ((i * LANES + l) % 7) as f32 * 0.3 - 0.9))
             .collect();
-        let mut y = vec![[0f32; LANES]; n_out];
+        let mut y = vec![[0f32; LANES]; passes * n_out];
+        let arch = Arch::new();
         plain.push(ns_per_item(b, secs, || {
-            Arch::new().dispatch(|| {
-                for xp in lanes.chunks_exact(n_in) {
-                    kernel.forward(xp, &mut y, &mut scratch);
-                    std::hint::black_box(&y);
-                }
-            })
+            kernel.forward_many(arch, &lanes, &mut y, &mut scratch);
+            std::hint::black_box(&y);
         }));
         burned.push(ns_per_item(b, secs, || {
             std::hint::black_box(burn.forward_normalized(&x));

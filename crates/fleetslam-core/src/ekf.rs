@@ -105,9 +105,40 @@ impl EkfUpdater {
     }
 }
 
+/// A batch as one [`pulp::WithSimd`] operation: `with_simd` (and the updates, all
+/// `#[inline(always)]`) is compiled into the function `Arch::dispatch` builds for the detected
+/// instruction set; a closure's body would stay a separate, baseline function.
+struct Batch<'a> {
+    ekf: &'a EkfUpdater,
+    needs: UpdateNeeds,
+    inputs: &'a [UpdateInput],
+    outputs: &'a mut [UpdateOutput],
+}
+
+impl pulp::WithSimd for Batch<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        let (u, needs) = (self.ekf, self.needs);
+        match u.kind {
+            LandmarkKind::RangeBearing2d => {
+                for (i, o) in self.inputs.iter().zip(self.outputs.iter_mut()) {
+                    *o = u.update_2d(i, needs);
+                }
+            }
+            LandmarkKind::Point3d => {
+                for (i, o) in self.inputs.iter().zip(self.outputs.iter_mut()) {
+                    *o = u.update_3d(i, needs);
+                }
+            }
+        }
+    }
+}
+
 /// The output of a computed update: the likelihood only when asked for; a posterior or a
 /// likelihood that is not finite makes the update a rejected one.
-#[inline]
+#[inline(always)]
 fn finish(
     prior: &LandmarkGaussian,
     posterior: LandmarkGaussian,
@@ -179,17 +210,11 @@ impl LandmarkUpdater for EkfUpdater {
         outputs: &mut [UpdateOutput],
     ) {
         debug_assert_eq!(inputs.len(), outputs.len());
-        self.arch.dispatch(|| match self.kind {
-            LandmarkKind::RangeBearing2d => {
-                for (i, o) in inputs.iter().zip(outputs.iter_mut()) {
-                    *o = self.update_2d(i, needs);
-                }
-            }
-            LandmarkKind::Point3d => {
-                for (i, o) in inputs.iter().zip(outputs.iter_mut()) {
-                    *o = self.update_3d(i, needs);
-                }
-            }
+        self.arch.dispatch(Batch {
+            ekf: self,
+            needs,
+            inputs,
+            outputs,
         })
     }
 }

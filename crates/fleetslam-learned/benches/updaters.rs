@@ -13,7 +13,7 @@ use fleetslam_core::ekf::EkfUpdater;
 use fleetslam_core::sensor::{LandmarkKind, SensorNoise};
 use fleetslam_core::updater::{LandmarkUpdater, UpdateInput, UpdateNeeds, UpdateOutput};
 use fleetslam_learned::dataset::synthetic_rows;
-use fleetslam_learned::kernel::{Kernel, LANES, Scratch};
+use fleetslam_learned::kernel::{Arch, Kernel, LANES, Scratch};
 use fleetslam_learned::training::{BurnPredictor, TrainConfig, train};
 use fleetslam_learned::{MlpModel, MlpUpdater, TrainingRow};
 use std::hint::black_box;
@@ -99,7 +99,8 @@ fn bench_kind(c: &mut Criterion, kind: LandmarkKind) {
             let lanes: Vec<[f32; LANES]> = (0..b.div_ceil(LANES) * n_in)
                 .map(|i| std::array::from_fn(|l| ((i * LANES + l) % 7) as f32 * 0.3 - 0.9))
                 .collect();
-            let mut y = vec![[0f32; LANES]; n_out];
+            let mut y = vec![[0f32; LANES]; b.div_ceil(LANES) * n_out];
+            let arch = Arch::new();
             let mut scratch = Box::<Scratch>::default();
             g.throughput(Throughput::Elements(b as u64));
             g.bench_with_input(
@@ -107,10 +108,8 @@ fn bench_kind(c: &mut Criterion, kind: LandmarkKind) {
                 &b,
                 |bch, _| {
                     bch.iter(|| {
-                        for xp in lanes.chunks_exact(n_in) {
-                            kernel.forward(black_box(xp), &mut y, &mut scratch);
-                            black_box(&y);
-                        }
+                        kernel.forward_many(arch, black_box(&lanes), &mut y, &mut scratch);
+                        black_box(&y);
                     })
                 },
             );

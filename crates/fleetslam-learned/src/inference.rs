@@ -131,10 +131,13 @@ impl MlpUpdater {
     ) {
         SCRATCH.with(|scratch| {
             let mut scratch = scratch.borrow_mut();
-            self.arch.dispatch(|| {
-                for (inp, out) in inputs.chunks(LANES).zip(outputs.chunks_mut(LANES)) {
-                    self.pass(needs, inp, out, &frame, &mut scratch);
-                }
+            self.arch.dispatch(Passes {
+                updater: self,
+                needs,
+                inputs,
+                outputs,
+                frame,
+                scratch: &mut scratch,
             })
         })
     }
@@ -239,6 +242,35 @@ impl MlpUpdater {
             log_likelihood,
             mahalanobis2,
         })
+    }
+}
+
+/// A batch's passes, as one [`pulp::WithSimd`] operation: `with_simd` is inlined into the
+/// function that `Arch::dispatch` compiles for the detected instruction set, and so are the
+/// pass, the kernel and its layers (`#[inline(always)]`). (A closure would not be: its body
+/// would stay a separate function compiled for the baseline.)
+struct Passes<'a, F> {
+    updater: &'a MlpUpdater,
+    needs: UpdateNeeds,
+    inputs: &'a [UpdateInput],
+    outputs: &'a mut [UpdateOutput],
+    frame: F,
+    scratch: &'a mut Scratch,
+}
+
+impl<const D: usize, F: Fn(&UpdateInput) -> Option<Frame<D>>> pulp::WithSimd for Passes<'_, F> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        for (inp, out) in self
+            .inputs
+            .chunks(LANES)
+            .zip(self.outputs.chunks_mut(LANES))
+        {
+            self.updater
+                .pass(self.needs, inp, out, &self.frame, self.scratch);
+        }
     }
 }
 

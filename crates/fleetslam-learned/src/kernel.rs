@@ -5,8 +5,9 @@
 //! 64 and 1,000). The input standardisation is folded into the first layer and the output
 //! de-standardisation into the last, so a forward pass is nothing but dense layers.
 //!
-//! Callers run passes inside [`Arch::dispatch`] (pulp), which compiles them for AVX2 when the
-//! CPU has it (one 256-bit register holds the 8 lanes) and for the baseline otherwise. Rust
+//! Callers run passes inside [`Arch::dispatch`] (pulp) through a `WithSimd` operation whose
+//! `with_simd` is `#[inline(always)]`, so that the passes are compiled for AVX2 when the CPU
+//! has it (one 256-bit register holds the 8 lanes) and for the baseline otherwise. Rust
 //! never fuses a multiply and an add on its own, so both give the same bits.
 
 pub use pulp::Arch;
@@ -118,6 +119,17 @@ impl Kernel {
         y[..self.n_out].copy_from_slice(&cur[..self.n_out]);
     }
 
+    /// Many passes in one dispatch (benchmarks): `x` holds `n_in` lane vectors per pass,
+    /// `y` receives `n_out` per pass.
+    pub fn forward_many(&self, arch: Arch, x: &[Lanes], y: &mut [Lanes], s: &mut Scratch) {
+        arch.dispatch(ForwardMany {
+            kernel: self,
+            x,
+            y,
+            s,
+        })
+    }
+
     /// One item (lane 0 of a pass): raw features in, raw outputs out.
     pub fn predict(&self, features: &[f64], out: &mut [f64]) {
         let mut x = [[0f32; LANES]; MAX_IO];
@@ -128,6 +140,31 @@ impl Kernel {
         self.forward(&x, &mut y, &mut Scratch::default());
         for (o, yi) in out.iter_mut().zip(&y) {
             *o = yi[0] as f64;
+        }
+    }
+}
+
+/// [`Kernel::forward_many`] as one [`pulp::WithSimd`] operation, so that the passes are
+/// compiled for the dispatched instruction set (a closure's body would not be).
+struct ForwardMany<'a> {
+    kernel: &'a Kernel,
+    x: &'a [Lanes],
+    y: &'a mut [Lanes],
+    s: &'a mut Scratch,
+}
+
+impl pulp::WithSimd for ForwardMany<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        let k = self.kernel;
+        for (xp, yp) in self
+            .x
+            .chunks_exact(k.n_in)
+            .zip(self.y.chunks_exact_mut(k.n_out))
+        {
+            k.forward(xp, yp, self.s);
         }
     }
 }

@@ -58,14 +58,14 @@ impl EkfUpdater {
         let prior = &inp.prior;
         let Some((zhat, h, _)) = range_bearing_predict(&inp.pose, prior.mean[0], prior.mean[1])
         else {
-            return rejected(prior);
+            return UpdateOutput::rejected(prior);
         };
         let sigma = prior.cov2();
         let sht = sigma * h.transpose();
         let s = h * sht + self.q2;
         let det = s[(0, 0)] * s[(1, 1)] - s[(0, 1)] * s[(1, 0)];
         if !(det > 0.0 && det.is_finite()) {
-            return rejected(prior);
+            return UpdateOutput::rejected(prior);
         }
         let s_inv = Matrix2::new(s[(1, 1)], -s[(0, 1)], -s[(1, 0)], s[(0, 0)]) / det;
         let k = sht * s_inv;
@@ -88,7 +88,7 @@ impl EkfUpdater {
         let sht = sigma * h.transpose();
         let s = h * sht + self.q3;
         let Some(chol) = s.cholesky() else {
-            return rejected(prior);
+            return UpdateOutput::rejected(prior);
         };
         let s_inv = chol.inverse();
         let det = chol.determinant();
@@ -146,12 +146,12 @@ fn finish(
     likelihood: impl FnOnce() -> (f64, f64),
 ) -> UpdateOutput {
     if !posterior.is_finite() {
-        return rejected(prior);
+        return UpdateOutput::rejected(prior);
     }
     let (log_likelihood, mahalanobis2) = if needs.likelihood() {
         let (ll, m2) = likelihood();
         if !ll.is_finite() {
-            return rejected(prior);
+            return UpdateOutput::rejected(prior);
         }
         (ll, m2)
     } else {
@@ -161,16 +161,6 @@ fn finish(
         posterior,
         log_likelihood,
         mahalanobis2,
-    }
-}
-
-/// An update that could not be computed (degenerate geometry or numbers): the prior is kept
-/// and the observation counts as an infinitely unlikely one, which the filter floors.
-fn rejected(prior: &LandmarkGaussian) -> UpdateOutput {
-    UpdateOutput {
-        posterior: *prior,
-        log_likelihood: f64::NEG_INFINITY,
-        mahalanobis2: f64::INFINITY,
     }
 }
 

@@ -97,6 +97,18 @@ pub struct UpdateOutput {
     pub mahalanobis2: f64,
 }
 
+impl UpdateOutput {
+    /// An update that could not be computed (degenerate geometry or numbers): the prior is
+    /// kept and the observation counts as an infinitely unlikely one, which the filter floors.
+    pub fn rejected(prior: &LandmarkGaussian) -> Self {
+        Self {
+            posterior: *prior,
+            log_likelihood: f64::NEG_INFINITY,
+            mahalanobis2: f64::INFINITY,
+        }
+    }
+}
+
 /// A per-landmark update. Implementations must be deterministic and item-independent.
 pub trait LandmarkUpdater: Send + Sync + std::fmt::Debug {
     /// A short name for reports (`ekf`, a model id, ...).

@@ -175,7 +175,7 @@ impl MlpUpdater {
         let mut raw = [0f64; MAX_IO];
         for (lane, (inp, o)) in inputs.iter().zip(outputs.iter_mut()).enumerate() {
             let Some((f, s)) = &frames[lane] else {
-                *o = rejected(&inp.prior);
+                *o = UpdateOutput::rejected(&inp.prior);
                 continue;
             };
             for (r, yi) in raw.iter_mut().zip(&y[..self.kernel.n_out()]) {
@@ -183,7 +183,7 @@ impl MlpUpdater {
             }
             *o = self
                 .decode(needs, inp, f, s, &raw)
-                .unwrap_or_else(|| rejected(&inp.prior));
+                .unwrap_or_else(|| UpdateOutput::rejected(&inp.prior));
         }
     }
 
@@ -271,15 +271,6 @@ impl<const D: usize, F: Fn(&UpdateInput) -> Option<Frame<D>>> pulp::WithSimd for
             self.updater
                 .pass(self.needs, inp, out, &self.frame, self.scratch);
         }
-    }
-}
-
-/// As the EKF: an update that can't be computed keeps the prior and is infinitely unlikely.
-fn rejected(prior: &LandmarkGaussian) -> UpdateOutput {
-    UpdateOutput {
-        posterior: *prior,
-        log_likelihood: f64::NEG_INFINITY,
-        mahalanobis2: f64::INFINITY,
     }
 }
 

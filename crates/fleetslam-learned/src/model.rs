@@ -37,15 +37,6 @@ impl Activation {
             Activation::Identity => "identity",
         }
     }
-
-    #[inline]
-    pub fn apply(self, v: f32) -> f32 {
-        match self {
-            Activation::Relu => v.max(0.0),
-            Activation::Tanh => v.tanh(),
-            Activation::Identity => v,
-        }
-    }
 }
 
 impl std::str::FromStr for Activation {

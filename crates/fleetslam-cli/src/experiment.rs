@@ -159,7 +159,7 @@ fn axis_rms(est: &Truth, truth: &Truth) -> (f64, f64, f64) {
     ((sx / n).sqrt(), (sy / n).sqrt(), (sh / n).sqrt())
 }
 
-fn score(experiment: &str, seed: u64, out: &RunOutput, truth: &Truth) -> Scored {
+pub(crate) fn score(experiment: &str, seed: u64, out: &RunOutput, truth: &Truth) -> Scored {
     let ev = evaluate(
         &out.estimate,
         truth,
@@ -183,7 +183,12 @@ fn score(experiment: &str, seed: u64, out: &RunOutput, truth: &Truth) -> Scored 
 }
 
 /// Logs the EKF's updates of `log` at `rate` (all rows, deterministic order).
-fn record_rows(log: &Log, cfg: &FilterConfig, rate: f64, seed: u64) -> Result<Vec<TrainingRow>> {
+pub(crate) fn record_rows(
+    log: &Log,
+    cfg: &FilterConfig,
+    rate: f64,
+    seed: u64,
+) -> Result<Vec<TrainingRow>> {
     let ekf: Arc<dyn LandmarkUpdater> =
         Arc::new(EkfUpdater::new(cfg.landmark_kind, &cfg.sensor_noise));
     let rec = Arc::new(RecordingUpdater::new(
@@ -236,7 +241,11 @@ fn models(
 
 /// Writes each run's rows to `work/<stem>-run<k>.ndjson` (one file per run, as `fleetslam
 /// train --data` takes them).
-fn write_runs(work: &std::path::Path, stem: &str, runs: &[Vec<TrainingRow>]) -> Result<()> {
+pub(crate) fn write_runs(
+    work: &std::path::Path,
+    stem: &str,
+    runs: &[Vec<TrainingRow>],
+) -> Result<()> {
     std::fs::create_dir_all(work)?;
     for (k, rows) in runs.iter().enumerate() {
         let path = work.join(format!("{stem}-run{k}.ndjson"));
@@ -246,7 +255,10 @@ fn write_runs(work: &std::path::Path, stem: &str, runs: &[Vec<TrainingRow>]) -> 
     Ok(())
 }
 
-fn updaters(cfg: &FilterConfig, models: &[MlpModel]) -> Result<Vec<Arc<dyn LandmarkUpdater>>> {
+pub(crate) fn updaters(
+    cfg: &FilterConfig,
+    models: &[MlpModel],
+) -> Result<Vec<Arc<dyn LandmarkUpdater>>> {
     let mut v: Vec<Arc<dyn LandmarkUpdater>> = vec![Arc::new(EkfUpdater::new(
         cfg.landmark_kind,
         &cfg.sensor_noise,
@@ -378,13 +390,13 @@ fn write_paper_outputs(a: &PaperArgs, results: &[Scored], models: &[MlpModel]) -
     Ok(())
 }
 
-fn fmt_opt(v: Option<String>) -> String {
+pub(crate) fn fmt_opt(v: Option<String>) -> String {
     v.unwrap_or_else(|| "-".into())
 }
 
 /// A length or ratio with 3 decimals; a diverged run's (not finite or beyond 1 km) in
 /// scientific notation, marked.
-fn fmt_m(v: f64) -> String {
+pub(crate) fn fmt_m(v: f64) -> String {
     if v.is_finite() && v.abs() < 1e3 {
         format!("{v:.3}")
     } else {
@@ -393,7 +405,7 @@ fn fmt_m(v: f64) -> String {
 }
 
 /// A ratio as a signed percentage difference; a diverged one marked.
-fn fmt_pct(ratio: f64) -> String {
+pub(crate) fn fmt_pct(ratio: f64) -> String {
     if ratio.is_finite() && ratio.abs() < 1e3 {
         format!("{:+.1} %", 100.0 * (ratio - 1.0))
     } else {
@@ -453,7 +465,7 @@ fn paper_markdown(a: &PaperArgs, results: &[Scored], models: &[MlpModel]) -> Str
 }
 
 /// One line per model: layout, network and its error against the EKF on its test run.
-fn model_lines(models: &[MlpModel]) -> String {
+pub(crate) fn model_lines(models: &[MlpModel]) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "\nModels:\n");
     for m in models {
@@ -586,16 +598,29 @@ fn mrclam_markdown(a: &MrclamArgs, results: &[Scored], models: &[MlpModel]) -> S
             r.wall_s
         );
     }
+    s.push_str(&summary_table(results, false));
+    s.push_str(&model_lines(models));
+    s
+}
+
+/// Mean and worst seed of every updater's team ATE, against the EKF's; with `landmarks`, the
+/// mean landmark RMSE too.
+pub(crate) fn summary_table(results: &[Scored], landmarks: bool) -> String {
+    let mut s = String::new();
     let mut names: Vec<&str> = results.iter().map(|r| r.updater.as_str()).collect();
-    names.dedup();
     names.sort();
     names.dedup();
+    let (lm_head, lm_rule) = if landmarks {
+        (" mean landmark RMSE [m] |", "---|")
+    } else {
+        ("", "")
+    };
     let _ = writeln!(
         s,
         "\nOver seeds (worst seed: the largest team ATE; ratios against the EKF's mean and worst):\n\n\
-         | updater | seeds | mean team ATE [m] | mean / EKF's | worst team ATE [m] (seed) | worst / EKF's worst | ns per update (mean) |\n|---|---|---|---|---|---|---|"
+         | updater | seeds | mean team ATE [m] | mean / EKF's | worst team ATE [m] (seed) | worst / EKF's worst |{lm_head} ns per update (mean) |\n|---|---|---|---|---|---|{lm_rule}---|"
     );
-    let stats = |n: &str| -> (usize, f64, f64, u64, f64) {
+    let stats = |n: &str| -> (usize, f64, f64, u64, f64, f64) {
         let v: Vec<&Scored> = results.iter().filter(|r| r.updater == n).collect();
         let k = v.len().max(1) as f64;
         let worst = v
@@ -609,20 +634,28 @@ fn mrclam_markdown(a: &MrclamArgs, results: &[Scored], models: &[MlpModel]) -> S
             worst.0,
             worst.1,
             v.iter().map(|r| r.ns_per_update).sum::<f64>() / k,
+            v.iter()
+                .map(|r| r.landmark_rmse.unwrap_or(f64::NAN))
+                .sum::<f64>()
+                / k,
         )
     };
-    let (_, ekf_mean, ekf_worst, _, _) = stats("ekf");
+    let (_, ekf_mean, ekf_worst, _, _, _) = stats("ekf");
     for n in names {
-        let (count, mean, worst, worst_seed, ns) = stats(n);
+        let (count, mean, worst, worst_seed, ns, lm) = stats(n);
+        let lm = if landmarks {
+            format!(" {} |", fmt_m(lm))
+        } else {
+            String::new()
+        };
         let _ = writeln!(
             s,
-            "| {n} | {count} | {} | {} | {} ({worst_seed}) | {} | {ns:.0} |",
+            "| {n} | {count} | {} | {} | {} ({worst_seed}) | {} |{lm} {ns:.0} |",
             fmt_m(mean),
             fmt_pct(mean / ekf_mean),
             fmt_m(worst),
             fmt_pct(worst / ekf_worst),
         );
     }
-    s.push_str(&model_lines(models));
     s
 }

@@ -13,9 +13,12 @@ use fleetslam_data::run::{RunOutput, TrajectoryEstimate, run_log};
 use fleetslam_learned::dataset::synthetic_rows;
 use fleetslam_learned::kernel::{Arch, Kernel, LANES, Scratch};
 use fleetslam_learned::row::{read_ndjson_path, write_ndjson_path};
-use fleetslam_learned::training::{BurnPredictor, TrainConfig, Trained, save_model_dir, train};
+use fleetslam_learned::training::{
+    BurnPredictor, TrainConfig, Trained, save_model_dir, train, train_split,
+};
 use fleetslam_learned::{
-    MlpModel, MlpUpdater, RecordingConfig, RecordingUpdater, STORE_MODEL_KIND, TrainingRow,
+    MlpModel, MlpUpdater, RecordingConfig, RecordingUpdater, RunSplit, STORE_MODEL_KIND,
+    TrainingRow,
 };
 use fleetslam_store::{NewModel, Store};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -189,8 +192,10 @@ pub struct TrainArgs {
     #[arg(long = "data", value_name = "FILE", required = true)]
     pub data: Vec<PathBuf>,
     /// Starting point: `paper` (the paper's 2-neuron linear network), `default` (2 × 32
-    /// ReLU on whitened features and innovation) or `structured` (gain and posterior factor
-    /// from the prior and noise).
+    /// ReLU on whitened features and innovation), `structured` (gain and posterior factor
+    /// from the prior and noise) or `truth` (the default's inputs and the distance, mean
+    /// learned from the landmarks' true positions: rows must carry `truth`, as those of
+    /// `experiment mrclam-truth` do).
     #[arg(long, value_parser = TrainConfig::PRESETS, default_value = "default")]
     pub preset: String,
     /// Model id (the updater name runs use); default `mlp-<preset>-<kind>`.
@@ -222,6 +227,10 @@ pub struct TrainArgs {
     /// Posterior covariance of the default layout: the network's or the EKF's closed form.
     #[arg(long, value_parser = ["network", "closed-form"])]
     pub covariance: Option<String>,
+    /// What the posterior mean learns: the EKF's (`ekf`) or the landmarks' true positions
+    /// (`truth`; the `truth` preset's choice).
+    #[arg(long, value_parser = ["ekf", "truth"])]
+    pub target: Option<String>,
     /// Output directory: model.json, model.bpk, config.json, report.json.
     #[arg(long)]
     pub out: PathBuf,
@@ -250,6 +259,9 @@ impl TrainArgs {
         if let Some(v) = &self.covariance {
             c.covariance = v.parse()?;
         }
+        if let Some(v) = &self.target {
+            c.target = v.parse()?;
+        }
         macro_rules! set {
             ($($f:ident),*) => { $( if let Some(v) = self.$f { c.$f = v; } )* };
         }
@@ -261,13 +273,34 @@ impl TrainArgs {
 
 /// Trains on `runs` (the rows of each run) with a progress bar showing the losses.
 pub fn train_with_progress(runs: &[Vec<TrainingRow>], cfg: &TrainConfig) -> Result<Trained> {
+    let n: usize = runs.iter().map(Vec::len).sum();
+    with_progress(cfg, &format!("{n} rows, {} runs", runs.len()), |p| {
+        Ok(train(runs, cfg, p)?)
+    })
+}
+
+/// Trains on a split the caller made (by robot and time span), with a progress bar.
+pub fn train_split_with_progress(sets: RunSplit, cfg: &TrainConfig) -> Result<Trained> {
+    let what = format!(
+        "{} / {} / {} rows",
+        sets.train.len(),
+        sets.val.len(),
+        sets.test.len()
+    );
+    with_progress(cfg, &what, |p| Ok(train_split(sets, cfg, p)?))
+}
+
+fn with_progress(
+    cfg: &TrainConfig,
+    what: &str,
+    f: impl FnOnce(&mut dyn FnMut(usize, usize, f64, f64)) -> Result<Trained>,
+) -> Result<Trained> {
     let bar = ProgressBar::new(cfg.epochs as u64);
     bar.set_style(ProgressStyle::with_template(
         "{spinner} [{elapsed_precise}] {bar:30} epoch {pos}/{len} {msg}",
     )?);
-    let n: usize = runs.iter().map(Vec::len).sum();
-    bar.set_message(format!("{} ({n} rows, {} runs)", cfg.id, runs.len()));
-    let t = train(runs, cfg, |epoch, _, tl, vl| {
+    bar.set_message(format!("{} ({what})", cfg.id));
+    let t = f(&mut |epoch, _, tl, vl| {
         bar.set_position(epoch as u64);
         bar.set_message(format!("{}: train loss {tl:.5}, val loss {vl:.5}", cfg.id));
     })?;
@@ -327,6 +360,13 @@ pub fn print_report(t: &Trained) {
         u.mahalanobis2_rmse,
         u.rejected
     );
+    if let Some(t) = &u.truth {
+        println!(
+            "against the landmarks' true positions on {} test rows: posterior mean RMSE {:.5} m \
+             (the EKF's: {:.5} m, not updating: {:.5} m)",
+            t.rows, t.updater_rmse, t.ekf_rmse, t.prior_rmse
+        );
+    }
 }
 
 /// Registers a trained model in a store.

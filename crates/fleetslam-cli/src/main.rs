@@ -25,6 +25,7 @@ mod learned;
 mod localcluster;
 mod localize;
 mod replay;
+mod truth_experiment;
 
 #[derive(Debug, Parser)]
 #[command(name = "fleetslam", version, about = "Multi-robot shared-map FastSLAM")]
@@ -70,7 +71,8 @@ enum Command {
     /// 3-node NATS cluster, and failover time (needs nats-server and PostgreSQL).
     ClusterBench(ClusterBenchArgs),
     /// Reproduce an experiment: `rtpf` (the real-time particle filter paper's), `paper`
-    /// (the FastSLAM-MLP paper's four), `mrclam` (EKF against the learned updaters).
+    /// (the FastSLAM-MLP paper's four), `mrclam` (EKF against the learned updaters),
+    /// `mrclam-truth` (a model trained against ground truth, on unseen robots and time).
     Experiment {
         #[command(subcommand)]
         which: ExperimentCommand,
@@ -87,31 +89,31 @@ enum ExperimentCommand {
     Paper(experiment::PaperArgs),
     /// MRCLAM Dataset 6 with models trained on simulated data only.
     Mrclam(experiment::MrclamArgs),
+    /// MRCLAM Dataset 6: a model trained against the landmarks' true positions on some
+    /// robots and a time span, tested on other robots and a later span.
+    MrclamTruth(truth_experiment::MrclamTruthArgs),
 }
 
 #[derive(Debug, Args)]
 struct RtpfArgs {
     #[arg(long)]
     out: PathBuf,
-    /// Runs per policy and window size.
-    #[arg(long, default_value_t = 30)]
-    seeds: usize,
-    /// Window sizes, comma-separated.
-    #[arg(
-        long,
-        value_delimiter = ',',
-        default_value = "2,3,4,5,6,7,8,9,10,11,12,13,14"
-    )]
-    windows: Vec<usize>,
-    /// Policies besides the baseline, comma-separated.
-    #[arg(long, value_delimiter = ',', default_value = "skip,naive,uniform,rtpf")]
-    policies: Vec<PolicyArg>,
-    /// Sample budget per update.
-    #[arg(long, default_value_t = 3000)]
-    samples: usize,
-    /// Records (seconds) per run.
-    #[arg(long, default_value_t = 300)]
-    records: usize,
+    /// Runs per policy and window size [default: the config file's, else 30].
+    #[arg(long)]
+    seeds: Option<usize>,
+    /// Window sizes, comma-separated [default: the config file's, else 2 to 14].
+    #[arg(long, value_delimiter = ',')]
+    windows: Option<Vec<usize>>,
+    /// Policies besides the baseline, comma-separated [default: the config file's, else
+    /// skip,naive,uniform,rtpf].
+    #[arg(long, value_delimiter = ',')]
+    policies: Option<Vec<PolicyArg>>,
+    /// Sample budget per update [default: the config file's, else 3000].
+    #[arg(long)]
+    samples: Option<usize>,
+    /// Records (seconds) per run [default: the config file's, else 300].
+    #[arg(long)]
+    records: Option<usize>,
     /// A JSON or TOML file with any RtpfExperiment fields; flags given explicitly win.
     #[arg(long)]
     config: Option<PathBuf>,
@@ -257,22 +259,26 @@ struct DemoArgs {
 
 #[derive(Debug, Args)]
 struct SimulateArgs {
-    #[arg(long, default_value_t = 3)]
-    robots: usize,
-    #[arg(long, default_value_t = 20)]
-    landmarks: usize,
-    /// Landmark kind.
-    #[arg(long, value_enum, default_value_t = KindArg::RangeBearing2d)]
-    kind: KindArg,
-    /// Simulated time [s].
-    #[arg(long, default_value_t = 60.0)]
-    duration: f64,
-    #[arg(long, default_value_t = 0)]
-    seed: u64,
+    /// Robots [default: the config file's, else 3].
+    #[arg(long)]
+    robots: Option<usize>,
+    /// Randomly placed landmarks [default: the config file's, else 20].
+    #[arg(long)]
+    landmarks: Option<usize>,
+    /// Landmark kind [default: the config file's, else range_bearing_2d].
+    #[arg(long, value_enum)]
+    kind: Option<KindArg>,
+    /// Simulated time [s] [default: the config file's, else 60].
+    #[arg(long)]
+    duration: Option<f64>,
+    /// [default: the config file's, else 0]
+    #[arg(long)]
+    seed: Option<u64>,
     /// Leave landmark ids out of the observations (unknown data association).
     #[arg(long)]
     no_ids: bool,
-    /// A JSON or TOML file with any SimConfig fields; flags given explicitly win.
+    /// A JSON or TOML file with any SimConfig fields; flags given explicitly win, and a
+    /// field the file sets keeps its value unless its flag is given.
     #[arg(long)]
     config: Option<PathBuf>,
     #[arg(long)]
@@ -340,9 +346,10 @@ struct RunArgs {
     #[arg(long)]
     particles: Option<usize>,
     /// Landmark updater: `ekf`, or an MLP model file (`model.json` or a `fleetslam train`
-    /// output directory).
-    #[arg(long, default_value = "ekf")]
-    updater: String,
+    /// output directory) [default: ekf; a config file that names another updater needs
+    /// its model file here].
+    #[arg(long)]
+    updater: Option<String>,
     #[command(flatten)]
     learned: learned::RunLearnedArgs,
     #[arg(long)]
@@ -440,6 +447,7 @@ fn main() -> Result<()> {
             ExperimentCommand::Paper(a) => {
                 experiment::cmd_experiment(experiment::ExperimentCommand::Paper(a))
             }
+            ExperimentCommand::MrclamTruth(a) => truth_experiment::cmd_mrclam_truth(a),
             ExperimentCommand::Mrclam(a) => {
                 experiment::cmd_experiment(experiment::ExperimentCommand::Mrclam(a))
             }
@@ -478,12 +486,24 @@ fn layered<T: serde::Serialize + serde::de::DeserializeOwned>(
 
 fn cmd_simulate(a: SimulateArgs) -> Result<()> {
     let mut cfg: SimConfig = layered(&SimConfig::default(), a.config.as_deref())?;
-    cfg.robots = a.robots;
-    cfg.landmarks = a.landmarks;
-    cfg.kind = a.kind.into();
-    cfg.duration = a.duration;
-    cfg.seed = a.seed;
-    cfg.with_ids = !a.no_ids;
+    if let Some(v) = a.robots {
+        cfg.robots = v;
+    }
+    if let Some(v) = a.landmarks {
+        cfg.landmarks = v;
+    }
+    if let Some(v) = a.kind {
+        cfg.kind = v.into();
+    }
+    if let Some(v) = a.duration {
+        cfg.duration = v;
+    }
+    if let Some(v) = a.seed {
+        cfg.seed = v;
+    }
+    if a.no_ids {
+        cfg.with_ids = false;
+    }
     let sim = simulate(&cfg).context("simulating")?;
     std::fs::create_dir_all(&a.out)?;
     sim.log.write_path(a.out.join("log.ndjson"))?;
@@ -564,7 +584,15 @@ fn cmd_run(a: RunArgs) -> Result<()> {
             Association::Unknown
         };
     }
-    let updater = learned::updater_from_spec(&a.updater, &mut cfg)?;
+    let spec = match &a.updater {
+        Some(spec) => spec.clone(),
+        None if cfg.updater == "ekf" => "ekf".into(),
+        None => bail!(
+            "the configuration names updater {:?}: give its model file with --updater",
+            cfg.updater
+        ),
+    };
+    let updater = learned::updater_from_spec(&spec, &mut cfg)?;
     let (updater, recorder) = learned::maybe_record(updater, &a.learned)?;
     let which = if a.trajectory == "best" {
         TrajectoryEstimate::Best
@@ -634,11 +662,21 @@ fn cmd_run(a: RunArgs) -> Result<()> {
 
 fn cmd_experiment_rtpf(a: RtpfArgs) -> Result<()> {
     let mut exp: RtpfExperiment = layered(&RtpfExperiment::default(), a.config.as_deref())?;
-    exp.seeds = a.seeds;
-    exp.windows = a.windows.clone();
-    exp.policies = a.policies.iter().map(|p| (*p).into()).collect();
-    exp.samples = a.samples;
-    exp.records = a.records;
+    if let Some(v) = a.seeds {
+        exp.seeds = v;
+    }
+    if let Some(v) = &a.windows {
+        exp.windows = v.clone();
+    }
+    if let Some(v) = &a.policies {
+        exp.policies = v.iter().map(|p| (*p).into()).collect();
+    }
+    if let Some(v) = a.samples {
+        exp.samples = v;
+    }
+    if let Some(v) = a.records {
+        exp.records = v;
+    }
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(a.threads.unwrap_or(0))
         .build()?;

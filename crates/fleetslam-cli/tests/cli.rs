@@ -1,7 +1,7 @@
 //! The `fleetslam` command end to end: simulate, run, evaluate, and clear errors.
 
 mod common;
-use common::{fleetslam, json, ok};
+use common::{fails, fleetslam, json, ok};
 
 #[test]
 fn simulate_run_evaluate() {
@@ -294,4 +294,83 @@ fn localize_in_a_finished_runs_map() {
     ]);
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("reading the map"));
+}
+
+/// A `--config` file's fields hold unless their flag is given (`simulate`, `run` and
+/// `experiment rtpf` once let the flags' defaults overwrite them).
+#[test]
+fn config_files_keep_their_fields_unless_a_flag_is_given() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = |p: &str| dir.path().join(p).to_string_lossy().into_owned();
+    std::fs::write(
+        dir.path().join("sim.json"),
+        r#"{"robots": 2, "landmarks": 7, "duration": 5.0, "seed": 9}"#,
+    )
+    .unwrap();
+    let config = d("sim.json");
+    let sim = |out: &str, extra: &[&str]| {
+        let out = d(out);
+        let mut args = vec!["simulate", "--config", &config, "--out", &out];
+        args.extend_from_slice(extra);
+        ok(&args);
+        let log = std::fs::read_to_string(dir.path().join(&out).join("log.ndjson")).unwrap();
+        let header: serde_json::Value = serde_json::from_str(log.lines().next().unwrap()).unwrap();
+        let last: serde_json::Value = serde_json::from_str(log.lines().last().unwrap()).unwrap();
+        let landmarks =
+            std::fs::read_to_string(dir.path().join(&out).join("truth/landmarks.csv")).unwrap();
+        (
+            header["robots"].as_array().unwrap().len(),
+            landmarks.lines().count() - 1,
+            last["t"].as_f64().unwrap(),
+        )
+    };
+    let (robots, landmarks, t_end) = sim("a", &[]);
+    assert_eq!((robots, landmarks), (2, 7));
+    assert!(t_end <= 5.0 + 1e-9, "last record at {t_end}");
+    // A flag given wins over the file; the file's other fields stay.
+    let (robots, landmarks, _) = sim("b", &["--robots", "3"]);
+    assert_eq!((robots, landmarks), (3, 7));
+
+    // `run`: the file's particle count holds; a file naming a learned updater needs its
+    // model file.
+    std::fs::write(dir.path().join("run.json"), r#"{"particles": 30}"#).unwrap();
+    ok(&[
+        "run",
+        &d("a/log.ndjson"),
+        "--config",
+        &d("run.json"),
+        "--out",
+        &d("run"),
+    ]);
+    let m = json(&dir.path().join("run/metrics.json"));
+    assert_eq!(m["particles"].as_u64(), Some(30), "{m}");
+    std::fs::write(dir.path().join("mlp.json"), r#"{"updater": "mlp-x"}"#).unwrap();
+    let err = fails(&[
+        "run",
+        &d("a/log.ndjson"),
+        "--config",
+        &d("mlp.json"),
+        "--out",
+        &d("r2"),
+    ]);
+    assert!(err.contains("mlp-x") && err.contains("--updater"), "{err}");
+
+    // `experiment rtpf`: the file's seeds, windows, policies and sizes hold.
+    std::fs::write(
+        dir.path().join("rtpf.json"),
+        r#"{"seeds": 1, "windows": [3], "policies": ["skip"], "samples": 200, "records": 30}"#,
+    )
+    .unwrap();
+    let out = dir.path().join("rtpf");
+    ok(&[
+        "experiment",
+        "rtpf",
+        "--config",
+        &d("rtpf.json"),
+        "--out",
+        &out.to_string_lossy(),
+    ]);
+    let times = std::fs::read_to_string(out.join("times.csv")).unwrap();
+    // The header, the baseline and skip at window 3.
+    assert_eq!(times.lines().count(), 3, "{times}");
 }

@@ -201,3 +201,87 @@ fn log_rows_train_and_run_with_the_model() {
         "{err}"
     );
 }
+
+/// The MRCLAM Dataset 6 directory beside the clone; a missing one fails under
+/// `FLEETSLAM_REQUIRE_DATA=1` (CI) and skips otherwise.
+fn mrclam() -> Option<std::path::PathBuf> {
+    let p = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../../shared/datasets/mrclam-dataset6");
+    if p.is_dir() {
+        return Some(p);
+    }
+    assert!(
+        !std::env::var("FLEETSLAM_REQUIRE_DATA").is_ok_and(|v| v == "1"),
+        "{} is missing and FLEETSLAM_REQUIRE_DATA=1",
+        p.display()
+    );
+    println!("skipped: {} is missing", p.display());
+    None
+}
+
+/// `experiment mrclam-truth` on a slice: three sets split by robot and time, every row of
+/// each matched to its observation and labelled, two models trained and saved, the filter
+/// run on the test set with the EKF and both, and the table written.
+#[test]
+fn experiment_mrclam_truth_on_a_slice() {
+    let Some(data) = mrclam() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let d = |p: &str| dir.path().join(p).to_string_lossy().into_owned();
+    let printed = ok(&[
+        "experiment",
+        "mrclam-truth",
+        "--dataset",
+        &data.to_string_lossy(),
+        "--duration",
+        "120",
+        "--split",
+        "60",
+        "--seeds",
+        "1",
+        "--particles",
+        "50",
+        "--train-particles",
+        "50",
+        "--training-rate",
+        "0.2",
+        "--epochs",
+        "20",
+        "--prior-gate",
+        "9.21",
+        "--work",
+        &d("work"),
+        "--out-dir",
+        &d("docs"),
+    ]);
+    for set in ["training set", "validation set", "test set"] {
+        let line = printed
+            .lines()
+            .find(|l| l.starts_with(set))
+            .unwrap_or_else(|| panic!("no {set} line: {printed}"));
+        assert!(line.contains(", 0 not in the log"), "{line}");
+        let labelled: usize = line
+            .split(" rows logged, ")
+            .nth(1)
+            .and_then(|s| s.split(' ').next())
+            .and_then(|n| n.parse().ok())
+            .unwrap();
+        assert!(labelled > 100, "{line}");
+    }
+    for id in ["mlp-truth-mrclam", "mlp-truth-layout-ekf-target-mrclam"] {
+        let m = json(&dir.path().join("work").join(id).join("model.json"));
+        assert_eq!(m["layout"], "line_of_sight_range");
+        let truth = &m["metadata"]["report"]["updater"]["truth"];
+        assert!(truth["rows"].as_u64().unwrap() > 0, "{truth}");
+    }
+    let results = json(&dir.path().join("work/mrclam-truth-results.json"));
+    let results = results.as_array().unwrap();
+    assert_eq!(results.len(), 3);
+    assert!(
+        results
+            .iter()
+            .all(|r| r["ate"].as_f64().unwrap().is_finite())
+    );
+    let md = std::fs::read_to_string(dir.path().join("docs/learned-mrclam-truth.md")).unwrap();
+    assert!(md.contains("| test | 4, 5 | 60 s to 120 s |"), "{md}");
+    assert!(md.contains("| ekf | 1 |"), "{md}");
+}

@@ -5,10 +5,50 @@ use crate::LearnedError;
 use crate::frame::{Frame, InputLayout, frame2, frame3, paper_features, paper_targets};
 use crate::row::TrainingRow;
 use fleetslam_core::sensor::{LandmarkKind, SensorNoise};
-use fleetslam_core::updater::{LandmarkUpdater, UpdateNeeds};
+use fleetslam_core::updater::{LandmarkGaussian, LandmarkUpdater, UpdateNeeds};
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use serde::{Deserialize, Serialize};
+
+/// What a network's posterior-mean outputs are trained to predict.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TrainTarget {
+    /// The EKF's logged posterior mean: the network mimics the EKF.
+    #[default]
+    Ekf,
+    /// The landmark's true position seen from the row's pose (rows labelled with
+    /// [`crate::truth::label_rows`]). Under a squared loss the best prediction is
+    /// `E[truth | inputs]`, the posterior mean under the data's own error distribution (the
+    /// real sensor's biases and range-dependent noise), which the EKF's Gaussian model only
+    /// approximates. The
+    /// covariance outputs keep the EKF's posterior as their target (one truth position per
+    /// row cannot determine a covariance). The `gain` layout cannot take it: its outputs
+    /// are a gain, which one position cannot determine either.
+    Truth,
+}
+
+impl TrainTarget {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            TrainTarget::Ekf => "ekf",
+            TrainTarget::Truth => "truth",
+        }
+    }
+}
+
+impl std::str::FromStr for TrainTarget {
+    type Err = LearnedError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "ekf" => Ok(TrainTarget::Ekf),
+            "truth" => Ok(TrainTarget::Truth),
+            o => Err(LearnedError::Config(format!(
+                "unknown target {o:?}: use ekf or truth"
+            ))),
+        }
+    }
+}
 
 /// Inputs and targets, row-major.
 #[derive(Debug, Clone, Default)]
@@ -29,15 +69,26 @@ impl Encoded {
     }
 }
 
+/// The posterior whose mean the network learns: the EKF's, or the truth position with the
+/// EKF's covariance. `None` for a truth target on a row without truth.
+fn target_posterior(row: &TrainingRow, target: TrainTarget) -> Option<LandmarkGaussian> {
+    let ekf = row.output().posterior;
+    match target {
+        TrainTarget::Ekf => Some(ekf),
+        TrainTarget::Truth => row.truth.map(|mean| LandmarkGaussian { mean, ..ekf }),
+    }
+}
+
 fn encode_frame<const D: usize>(
     layout: InputLayout,
+    target: TrainTarget,
     f: &Frame<D>,
     row: &TrainingRow,
     x: &mut [f64],
     y: &mut [f64],
 ) -> Option<()> {
     let s = f.prior_std();
-    let (corr, cov) = f.frame_posterior(&row.prior_mean, &row.output().posterior);
+    let (corr, cov) = f.frame_posterior(&row.prior_mean, &target_posterior(row, target)?);
     if layout == InputLayout::Gain {
         // The gain is not in a row (one correction cannot determine a matrix): it is the
         // EKF's gain `Σ (Σ + Q)⁻¹` from the row's prior and the noise estimated from the
@@ -45,7 +96,11 @@ fn encode_frame<const D: usize>(
         f.prior_features(&s, x);
         f.gain_targets(&f.innovation(false)?, &cov, y)?;
     } else {
-        f.los_features(&s, x);
+        if layout == InputLayout::LineOfSightRange {
+            f.los_range_features(&s, x);
+        } else {
+            f.los_features(&s, x);
+        }
         f.los_targets(&corr, &cov, y)?;
     }
     x.iter()
@@ -54,13 +109,14 @@ fn encode_frame<const D: usize>(
         .then_some(())
 }
 
-/// Encodes rows of `kind` for `layout`; rows of another kind, degenerate geometry or a
-/// posterior that is not positive definite are skipped. Returns the encoding and how many
-/// rows were skipped.
+/// Encodes rows of `kind` for `layout` with the mean target `target`; rows of another kind,
+/// degenerate geometry, a posterior that is not positive definite or (target `truth`) no
+/// truth position are skipped. Returns the encoding and how many rows were skipped.
 pub fn encode(
     rows: &[TrainingRow],
     kind: LandmarkKind,
     layout: InputLayout,
+    target: TrainTarget,
     noise: &SensorNoise,
 ) -> (Encoded, usize) {
     let (n_in, n_out) = layout.dims(kind);
@@ -80,19 +136,19 @@ pub fn encode(
         }
         let inp = row.input();
         let ok = match layout {
-            InputLayout::Paper => {
+            InputLayout::Paper => target_posterior(row, target).map(|post| {
                 paper_features(kind, &inp, &mut x);
-                paper_targets(kind, &row.output().posterior, &mut y);
-                Some(())
+                paper_targets(kind, &post, &mut y);
+            }),
+            InputLayout::LineOfSight | InputLayout::LineOfSightRange | InputLayout::Gain => {
+                match kind {
+                    LandmarkKind::RangeBearing2d => frame2(&inp, noise)
+                        .and_then(|f| encode_frame(layout, target, &f, row, &mut x, &mut y)),
+                    LandmarkKind::Point3d => {
+                        encode_frame(layout, target, &frame3(&inp, noise), row, &mut x, &mut y)
+                    }
+                }
             }
-            InputLayout::LineOfSight | InputLayout::Gain => match kind {
-                LandmarkKind::RangeBearing2d => {
-                    frame2(&inp, noise).and_then(|f| encode_frame(layout, &f, row, &mut x, &mut y))
-                }
-                LandmarkKind::Point3d => {
-                    encode_frame(layout, &frame3(&inp, noise), row, &mut x, &mut y)
-                }
-            },
         };
         if ok.is_some() {
             e.x.extend_from_slice(&x);
@@ -257,6 +313,22 @@ pub struct UpdaterError {
     pub mahalanobis2_rmse: f64,
     /// Rows the updater rejected (kept the prior).
     pub rejected: usize,
+    /// Against ground truth, on the rows that carry it (`None` when none does).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub truth: Option<TruthError>,
+}
+
+/// Posterior means against the landmarks' true positions.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct TruthError {
+    /// Rows with a truth position.
+    pub rows: usize,
+    /// RMS distance from the updater's posterior mean to the truth [m].
+    pub updater_rmse: f64,
+    /// The same for the EKF's logged posterior mean [m].
+    pub ekf_rmse: f64,
+    /// The same for the prior mean (not updating) [m].
+    pub prior_rmse: f64,
 }
 
 /// Runs `updater` on the rows' inputs (in one batch) and compares with the rows' outputs.
@@ -273,10 +345,17 @@ pub fn updater_error(updater: &dyn LandmarkUpdater, rows: &[TrainingRow]) -> Upd
     }
     let (mut sm, mut s0, mut sc, mut sl, mut s2) = (0.0, 0.0, 0.0, 0.0, 0.0);
     let mut counted = 0usize;
+    let mut truth = TruthError::default();
     for (row, o) in rows.iter().zip(&outs) {
         let d2 = |a: &[f64; 3], b: &[f64; 3]| -> f64 {
             a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum()
         };
+        if let Some(t) = &row.truth {
+            truth.rows += 1;
+            truth.updater_rmse += d2(&o.posterior.mean, t);
+            truth.ekf_rmse += d2(&row.post_mean, t);
+            truth.prior_rmse += d2(&row.prior_mean, t);
+        }
         if !o.log_likelihood.is_finite() {
             e.rejected += 1;
         }
@@ -307,18 +386,43 @@ pub fn updater_error(updater: &dyn LandmarkUpdater, rows: &[TrainingRow]) -> Upd
     let c = counted.max(1) as f64;
     e.log_likelihood_rmse = (sl / c).sqrt();
     e.mahalanobis2_rmse = (s2 / c).sqrt();
+    if truth.rows > 0 {
+        let n = truth.rows as f64;
+        for v in [
+            &mut truth.updater_rmse,
+            &mut truth.ekf_rmse,
+            &mut truth.prior_rmse,
+        ] {
+            *v = (*v / n).sqrt();
+        }
+        e.truth = Some(truth);
+    }
     e
 }
 
 /// `n` generated EKF updates of `kind` under `noise`: a robot pose, a landmark prior from an
 /// initial observation with its covariance scaled by a log-uniform factor in [0.02, 2] (from
 /// fresh to well-observed landmarks), the true landmark drawn from that prior and a noisy
-/// observation of it, and the EKF's result. Used by tests, benchmarks and as a quick dataset.
+/// observation of it, and the EKF's result; each row carries the true position. Used by
+/// tests, benchmarks and as a quick dataset.
 pub fn synthetic_rows(
     kind: LandmarkKind,
     noise: &SensorNoise,
     n: usize,
     seed: u64,
+) -> Vec<TrainingRow> {
+    synthetic_rows_biased(kind, noise, n, seed, [0.0; 3])
+}
+
+/// As [`synthetic_rows`] from a sensor whose measurements are off by `bias` (added to
+/// `[range, bearing, 0]` or `[dx, dy, dz]`) that the EKF does not know of: what a model
+/// trained against truth can learn and the EKF cannot.
+pub fn synthetic_rows_biased(
+    kind: LandmarkKind,
+    noise: &SensorNoise,
+    n: usize,
+    seed: u64,
+    bias: [f64; 3],
 ) -> Vec<TrainingRow> {
     use fleetslam_core::ekf::EkfUpdater;
     use fleetslam_core::pose::Pose2;
@@ -373,22 +477,23 @@ pub fn synthetic_rows(
                     continue;
                 };
                 [
-                    zh[0] + noise.range * g(&mut rng),
-                    zh[1] + noise.bearing * g(&mut rng),
+                    zh[0] + bias[0] + noise.range * g(&mut rng),
+                    zh[1] + bias[1] + noise.bearing * g(&mut rng),
                     0.0,
                 ]
             }
             LandmarkKind::Point3d => {
                 let (zh, _, _) = point3_predict(&pose, &truth);
                 [
-                    zh[0] + noise.xyz[0] * g(&mut rng),
-                    zh[1] + noise.xyz[1] * g(&mut rng),
-                    zh[2] + noise.xyz[2] * g(&mut rng),
+                    zh[0] + bias[0] + noise.xyz[0] * g(&mut rng),
+                    zh[1] + bias[1] + noise.xyz[1] * g(&mut rng),
+                    zh[2] + bias[2] + noise.xyz[2] * g(&mut rng),
                 ]
             }
         };
         let input = UpdateInput { prior, pose, z };
-        if let Some(row) = TrainingRow::new(kind, &input, &ekf.update(&input)) {
+        if let Some(mut row) = TrainingRow::new(kind, &input, &ekf.update(&input)) {
+            row.truth = Some(truth);
             rows.push(row);
         }
     }

@@ -4,7 +4,7 @@
 //! each item in f64, the network on all lanes at once in f32 ([`Kernel`]), the decoding back
 //! per item. What the network predicts and what is derived (see the crate docs for why):
 //!
-//! | output | `line_of_sight` (default preset) | `gain` (structured preset) | `paper` preset |
+//! | output | `line_of_sight` (default preset), `line_of_sight_range` (truth preset) | `gain` (structured preset) | `paper` preset |
 //! |---|---|---|---|
 //! | posterior mean | network (correction in the measurement frame) | `μ + K ν`, the gain `K` from the network | network (world coordinates) |
 //! | posterior covariance | network (Cholesky factor: always positive definite), or the closed form with `covariance: closed_form` | as `line_of_sight` | EKF closed form `Σ − Σ S⁻¹ Σ` |
@@ -160,6 +160,7 @@ impl MlpUpdater {
             let s = f.prior_std();
             match layout {
                 InputLayout::LineOfSight => f.los_features(&s, &mut feats),
+                InputLayout::LineOfSightRange => f.los_range_features(&s, &mut feats),
                 InputLayout::Gain => {
                     f.prior_features(&s, &mut feats);
                 }
@@ -211,7 +212,7 @@ impl MlpUpdater {
         }
         let closed = |inn: &Option<_>| inn.as_ref().map(|i| f.closed_form_cov(i));
         let posterior = match self.model.layout {
-            InputLayout::LineOfSight | InputLayout::Gain => {
+            InputLayout::LineOfSight | InputLayout::LineOfSightRange | InputLayout::Gain => {
                 let (corr, cov) = if self.model.layout == InputLayout::Gain {
                     f.gain_decode(s, raw)
                 } else {

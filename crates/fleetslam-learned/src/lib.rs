@@ -24,7 +24,9 @@
 //! definite); the `structured` preset's network predicts the gain (so the mean is exactly
 //! linear in the innovation) and the covariance factor from the prior and the noise alone;
 //! the `paper` preset's network predicts the mean, and its covariance is the EKF's closed
-//! form `Σ − Σ (Σ + Q)⁻¹ Σ`.
+//! form `Σ − Σ (Σ + Q)⁻¹ Σ`. The `truth` preset's network learns the posterior mean from the
+//! landmarks' true positions ([`truth::label_rows`] labels logged rows against a data set's
+//! ground truth) instead of from the EKF, and so can learn a real sensor's biases.
 //!
 //! ```no_run
 //! use fleetslam_learned::{MlpModel, MlpUpdater};
@@ -43,13 +45,17 @@ pub mod recorder;
 pub mod row;
 #[cfg(feature = "train")]
 pub mod training;
+pub mod truth;
 
-pub use dataset::{RunSplit, UpdaterError, estimate_noise, split_runs, updater_error};
+pub use dataset::{
+    RunSplit, TrainTarget, TruthError, UpdaterError, estimate_noise, split_runs, updater_error,
+};
 pub use frame::InputLayout;
 pub use inference::MlpUpdater;
 pub use model::{Activation, CovarianceSource, MlpModel, STORE_MODEL_KIND};
 pub use recorder::{RecordingConfig, RecordingUpdater};
 pub use row::TrainingRow;
+pub use truth::{LabelStats, label_rows};
 
 use fleetslam_core::sensor::LandmarkKind;
 

@@ -33,6 +33,13 @@ pub struct TrainingRow {
     pub log_likelihood: f64,
     /// Squared Mahalanobis distance of the innovation.
     pub mahalanobis2: f64,
+    /// The landmark's true position as seen from the row's pose [m]: placed from `pose` by
+    /// the noise-free measurement (from the robot's true pose to the landmark's true
+    /// position), when the run has ground truth and the row was labelled
+    /// ([`crate::truth::label_rows`], which says why not the absolute position); the target
+    /// of models trained against truth.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub truth: Option<[f64; 3]>,
 }
 
 impl TrainingRow {
@@ -48,6 +55,7 @@ impl TrainingRow {
             post_cov: output.posterior.cov,
             log_likelihood: output.log_likelihood,
             mahalanobis2: output.mahalanobis2,
+            truth: None,
         };
         row.is_finite().then_some(row)
     }
@@ -61,6 +69,7 @@ impl TrainingRow {
             .chain(&self.post_mean)
             .chain(&self.post_cov)
             .chain([&self.log_likelihood, &self.mahalanobis2])
+            .chain(self.truth.iter().flatten())
             .all(|v| v.is_finite())
     }
 

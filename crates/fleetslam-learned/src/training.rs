@@ -8,7 +8,9 @@
 //! results on the test runs only, which played no part in training or stopping.
 
 use crate::LearnedError;
-use crate::dataset::{Encoded, UpdaterError, encode, estimate_noise, split_runs, updater_error};
+use crate::dataset::{
+    Encoded, RunSplit, TrainTarget, UpdaterError, encode, estimate_noise, split_runs, updater_error,
+};
 use crate::frame::InputLayout;
 use crate::inference::MlpUpdater;
 use crate::kernel::Kernel;
@@ -79,6 +81,10 @@ pub struct TrainConfig {
     /// Where the `line_of_sight` updater's posterior covariance comes from.
     #[serde(default)]
     pub covariance: CovarianceSource,
+    /// What the posterior-mean outputs learn: the EKF's posterior (default) or the
+    /// landmark's true position (rows labelled with truth).
+    #[serde(default)]
+    pub target: TrainTarget,
 }
 
 impl TrainConfig {
@@ -105,6 +111,7 @@ impl TrainConfig {
             patience: 50,
             noise: None,
             covariance: CovarianceSource::ClosedForm,
+            target: TrainTarget::Ekf,
         }
     }
 
@@ -127,6 +134,7 @@ impl TrainConfig {
             patience: 50,
             noise: None,
             covariance: CovarianceSource::Network,
+            target: TrainTarget::Ekf,
         }
     }
 
@@ -141,17 +149,31 @@ impl TrainConfig {
         }
     }
 
-    /// The preset names [`TrainConfig::preset`] takes.
-    pub const PRESETS: [&str; 3] = ["paper", "default", "structured"];
+    /// Trained against ground truth: the `line_of_sight_range` layout (the default's inputs
+    /// and the distance, on which a real sensor's error depends), the posterior mean learned
+    /// from the landmarks' true positions, the covariance from the EKF's; 2 × 32 ReLU, Adam.
+    /// Needs rows labelled with truth ([`crate::truth::label_rows`]).
+    pub fn truth(id: &str) -> Self {
+        Self {
+            preset: "truth".into(),
+            layout: InputLayout::LineOfSightRange,
+            target: TrainTarget::Truth,
+            ..Self::default_preset(id)
+        }
+    }
 
-    /// A preset by name: `paper`, `default` or `structured`.
+    /// The preset names [`TrainConfig::preset`] takes.
+    pub const PRESETS: [&str; 4] = ["paper", "default", "structured", "truth"];
+
+    /// A preset by name: `paper`, `default`, `structured` or `truth`.
     pub fn preset(name: &str, id: &str) -> Result<Self, LearnedError> {
         match name {
             "paper" => Ok(Self::paper(id)),
             "default" => Ok(Self::default_preset(id)),
             "structured" => Ok(Self::structured(id)),
+            "truth" => Ok(Self::truth(id)),
             o => Err(LearnedError::Config(format!(
-                "unknown preset {o:?}: use paper, default or structured"
+                "unknown preset {o:?}: use paper, default, structured or truth"
             ))),
         }
     }
@@ -172,6 +194,13 @@ impl TrainConfig {
         }
         if self.val_runs == 0 {
             return bad("at least one validation run is needed (val_runs >= 1)".into());
+        }
+        if self.target == TrainTarget::Truth && self.layout == InputLayout::Gain {
+            return bad(
+                "the gain layout cannot be trained against truth (one true position per row \
+                 does not determine a gain): use line_of_sight or line_of_sight_range"
+                    .into(),
+            );
         }
         Ok(())
     }
@@ -351,9 +380,14 @@ pub struct TrainReport {
     pub first_val_loss: f64,
     pub final_train_loss: f64,
     pub seconds: f64,
-    /// Each output's error on the test runs (empty without test runs).
+    /// What the posterior-mean outputs were trained against.
+    #[serde(default)]
+    pub target: TrainTarget,
+    /// Each output's error on the test runs against the trained targets (empty without
+    /// test runs).
     pub outputs: Vec<OutputError>,
-    /// The updater's error against the EKF's logged results on the test runs.
+    /// The updater's error against the EKF's logged results (and against truth, where the
+    /// rows carry it) on the test runs.
     pub updater: Option<UpdaterError>,
 }
 
@@ -392,15 +426,15 @@ fn mse(net: &BurnMlp, x: &[f32], y: &[f32], n_in: usize, n_out: usize, device: &
     loss.into_scalar::<f32>() as f64
 }
 
-/// Trains a model on `runs` (each the rows of one run), split by run. `progress(epoch,
-/// epochs, train_loss, val_loss)` is called after every epoch.
+/// Trains a model on `runs` (each the rows of one run), split by run ([`split_runs`] with
+/// the configuration's `val_runs`, `test_runs` and seed). `progress(epoch, epochs,
+/// train_loss, val_loss)` is called after every epoch.
 pub fn train(
     runs: &[Vec<TrainingRow>],
     cfg: &TrainConfig,
-    mut progress: impl FnMut(usize, usize, f64, f64),
+    progress: impl FnMut(usize, usize, f64, f64),
 ) -> Result<Trained, LearnedError> {
     cfg.validate()?;
-    let started = std::time::Instant::now();
     let kind = match cfg
         .kind
         .or_else(|| runs.iter().flatten().next().map(|r| r.kind))
@@ -413,13 +447,51 @@ pub fn train(
         .map(|r| r.iter().filter(|r| r.kind == kind).copied().collect())
         .collect();
     let sets = split_runs(&runs, cfg.val_runs, cfg.test_runs, cfg.seed)?;
+    train_split(
+        sets,
+        &TrainConfig {
+            kind: Some(kind),
+            ..cfg.clone()
+        },
+        progress,
+    )
+}
+
+/// Trains a model on a split made by the caller (for example by robot and time span, so that
+/// the test set holds robots and times the model never saw). The configuration's
+/// `val_runs` and `test_runs` are not used.
+pub fn train_split(
+    sets: RunSplit,
+    cfg: &TrainConfig,
+    mut progress: impl FnMut(usize, usize, f64, f64),
+) -> Result<Trained, LearnedError> {
+    cfg.validate()?;
+    let started = std::time::Instant::now();
+    let Some(kind) = cfg.kind.or_else(|| sets.train.first().map(|r| r.kind)) else {
+        return Err(LearnedError::Data("no training rows".into()));
+    };
+    if cfg.target == TrainTarget::Truth {
+        let unlabelled = sets
+            .train
+            .iter()
+            .chain(&sets.val)
+            .filter(|r| r.truth.is_none())
+            .count();
+        if unlabelled > 0 {
+            return Err(LearnedError::Data(format!(
+                "target truth: {unlabelled} of {} training and validation rows carry no truth \
+                 position (label them against the data set's landmark truth first)",
+                sets.train.len() + sets.val.len()
+            )));
+        }
+    }
     let noise = match cfg.noise {
         Some(n) => n,
         None => estimate_noise(&sets.train, kind)?,
     };
-    let (tr, skip_t) = encode(&sets.train, kind, cfg.layout, &noise);
-    let (va, skip_v) = encode(&sets.val, kind, cfg.layout, &noise);
-    let (te, skip_e) = encode(&sets.test, kind, cfg.layout, &noise);
+    let (tr, skip_t) = encode(&sets.train, kind, cfg.layout, cfg.target, &noise);
+    let (va, skip_v) = encode(&sets.val, kind, cfg.layout, cfg.target, &noise);
+    let (te, skip_e) = encode(&sets.test, kind, cfg.layout, cfg.target, &noise);
     if tr.len() < 2 || va.is_empty() {
         return Err(LearnedError::Data(format!(
             "too few usable rows ({} train, {} validation) of kind {}",
@@ -541,6 +613,7 @@ pub fn train(
         first_val_loss: first_val,
         final_train_loss: train_loss,
         seconds: started.elapsed().as_secs_f64(),
+        target: cfg.target,
         outputs,
         updater: (!sets.test.is_empty()).then(|| updater_error(&updater, &sets.test)),
     };

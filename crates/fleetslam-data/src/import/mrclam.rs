@@ -87,6 +87,11 @@ pub struct MrclamOptions {
     pub odometry_delay: f64,
     /// Import only these robots (ids "1".."5"); all five when `None`.
     pub robots: Option<Vec<String>>,
+    /// Skip the first `start` seconds after the earliest start: each robot then starts at its
+    /// first ground-truth pose at or after that time, and records and truth begin there
+    /// (a later time span of the same robots, as a run of its own). `duration` still counts
+    /// from the earliest start, so the span kept is `[start, duration]`.
+    pub start: Option<f64>,
 }
 
 impl Default for MrclamOptions {
@@ -97,6 +102,7 @@ impl Default for MrclamOptions {
             max_record_interval: 0.2,
             odometry_delay: SUGGESTED_ODOMETRY_DELAY,
             robots: None,
+            start: None,
         }
     }
 }
@@ -359,6 +365,23 @@ pub fn import_mrclam(dir: &Path, opts: &MrclamOptions) -> Result<Imported, Impor
     }
     let t_start = starts.iter().map(|s| s.0).fold(f64::INFINITY, f64::min);
     let cutoff = opts.duration.map_or(f64::INFINITY, |d| t_start + d);
+    if let Some(skip) = opts.start {
+        if !(skip.is_finite() && skip >= 0.0) || opts.duration.is_some_and(|d| d <= skip) {
+            return Err(ImportError::InvalidOption(format!(
+                "start must be a finite number of seconds >= 0 and below the duration, got {skip}"
+            )));
+        }
+        for (f, s) in files.iter().zip(starts.iter_mut()) {
+            let from = (t_start + skip).max(s.0);
+            let Some((_, [t, x, y, th])) = f.truth.iter().find(|(_, [t, ..])| *t >= from) else {
+                return Err(ImportError::InvalidOption(format!(
+                    "start {skip} s: robot {} has no ground truth from then on",
+                    f.id
+                )));
+            };
+            *s = (*t, Pose2::new(*x, *y, wrap_angle(*th)));
+        }
+    }
 
     let mut records = Vec::new();
     let mut truth = Truth {
@@ -417,7 +440,9 @@ pub fn import_mrclam(dir: &Path, opts: &MrclamOptions) -> Result<Imported, Impor
                 continue;
             };
             if t < t0 {
-                report.drop_detection("before the robot's start (first ground-truth pose)");
+                report.drop_detection(
+                    "before the robot's start (its first ground-truth pose, or the start option)",
+                );
                 continue;
             }
             if range <= 0.0 {
@@ -497,6 +522,7 @@ pub fn import_mrclam(dir: &Path, opts: &MrclamOptions) -> Result<Imported, Impor
         let points: Vec<TrajectoryPoint> = f
             .truth
             .iter()
+            .skip_while(|(_, [t, ..])| *t < t0)
             .take_while(|(_, [t, ..])| *t <= cutoff)
             .map(|(_, [t, x, y, th])| TrajectoryPoint {
                 t: *t,
@@ -972,5 +998,45 @@ mod tests {
             Err(ImportError::InvalidOption(_))
         ));
         assert!(import_mrclam(&dir.join("nowhere"), &two_robots()).is_err());
+    }
+
+    /// `start` keeps a later time span as a run of its own: each robot starts at its first
+    /// truth pose at or after the start, no record or truth point lies before it, and the
+    /// motion integrates the odometry from there.
+    #[test]
+    fn start_keeps_a_later_time_span() {
+        let tmp = tempfile::TempDir::new().expect("tempdir");
+        tiny(tmp.path());
+        let opts = MrclamOptions {
+            start: Some(0.3),
+            ..two_robots()
+        };
+        let imp = import_mrclam(tmp.path(), &opts).expect("import");
+        let whole = import_mrclam(tmp.path(), &two_robots()).expect("import");
+        for rs in &imp.log.header.robots {
+            // The truth row at 10.5 is the first at or after 10.0 + 0.3.
+            assert_eq!(rs.t0, Some(10.5), "{rs:?}");
+        }
+        assert!(imp.log.records.iter().all(|r| r.t >= 10.5));
+        // The landmark readings (all after 10.5) are kept; records start at seq 0.
+        let seen = |l: &Log| l.records.iter().map(|r| r.landmarks.len()).sum::<usize>();
+        assert_eq!(seen(&imp.log), seen(&whole.log));
+        assert_eq!(imp.log.records.iter().filter(|r| r.seq == 0).count(), 2);
+        for pts in imp.truth.trajectories.values() {
+            assert_eq!(pts.first().map(|p| p.t), Some(10.5));
+        }
+        for bad in [Some(-1.0), Some(f64::NAN), Some(100.0)] {
+            let opts = MrclamOptions {
+                start: bad,
+                ..two_robots()
+            };
+            assert!(
+                matches!(
+                    import_mrclam(tmp.path(), &opts),
+                    Err(ImportError::InvalidOption(_))
+                ),
+                "{bad:?}"
+            );
+        }
     }
 }

@@ -192,10 +192,35 @@ pub struct ExportArgs {
     /// Also keep the zip as OUT/run-<id>.zip.
     #[arg(long)]
     keep_zip: bool,
+    /// `files` (the default: the files above) or `mcap` (OUT/run-<id>.mcap, for Foxglove
+    /// and other MCAP readers: poses, frame transforms, landmarks with their 2-sigma
+    /// ellipses and ids, and the ground truth when the run has one).
+    #[arg(long, value_parser = ["files", "mcap"], default_value = "files")]
+    format: String,
 }
 
 pub async fn cmd_export(a: ExportArgs) -> Result<()> {
     let api = a.target.open().await?;
+    if a.format == "mcap" {
+        let body = api
+            .ok(
+                Method::GET,
+                &format!("/v1/runs/{}/export?format=mcap", a.run),
+            )
+            .await
+            .with_context(|| format!("exporting run {} as MCAP", a.run))?;
+        api.close().await;
+        std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+        let path = a.out.join(format!("run-{}.mcap", a.run));
+        std::fs::write(&path, &body).with_context(|| format!("writing {}", path.display()))?;
+        println!(
+            "run {} exported to {} ({} bytes)",
+            a.run,
+            path.display(),
+            body.len()
+        );
+        return Ok(());
+    }
     let zip = api
         .ok(Method::GET, &format!("/v1/runs/{}/export", a.run))
         .await

@@ -38,6 +38,8 @@ fn replay_into_a_served_run() {
             "5",
             "--particles",
             "30",
+            "--truth",
+            sim.join("truth").to_str().unwrap(),
         ])
         .output()
         .unwrap();
@@ -58,6 +60,54 @@ fn replay_into_a_served_run() {
         dir.path().join("data/fleetslam.db").is_file(),
         "the embedded store is created on first start"
     );
+
+    // The run as MCAP (Foxglove's schemas), with the ground truth the replay uploaded.
+    let run = stdout
+        .lines()
+        .find_map(|l| l.strip_prefix("run "))
+        .expect("replay names its run");
+    let out_dir = dir.path().join("mcap");
+    common::ok(&[
+        "export",
+        run,
+        "--server",
+        &url,
+        "--format",
+        "mcap",
+        "--out",
+        out_dir.to_str().unwrap(),
+    ]);
+    let bytes = std::fs::read(out_dir.join(format!("run-{run}.mcap"))).unwrap();
+    let mut topics = std::collections::BTreeMap::<String, (String, usize)>::new();
+    for m in mcap::MessageStream::new(&bytes).unwrap() {
+        let m = m.unwrap();
+        let schema = m.channel.schema.as_ref().unwrap().name.clone();
+        topics
+            .entry(m.channel.topic.clone())
+            .or_insert((schema, 0))
+            .1 += 1;
+    }
+    let mut want = vec![
+        ("/tf".to_string(), "foxglove.FrameTransform"),
+        ("/landmarks".to_string(), "foxglove.SceneUpdate"),
+        ("/truth/landmarks".to_string(), "foxglove.SceneUpdate"),
+    ];
+    for r in 1..=3 {
+        want.push((format!("/robot/{r}/pose"), "foxglove.PoseInFrame"));
+        want.push((format!("/truth/{r}/pose"), "foxglove.PoseInFrame"));
+    }
+    for (topic, schema) in &want {
+        let (s, n) = topics
+            .get(topic)
+            .unwrap_or_else(|| panic!("no {topic}: {topics:?}"));
+        assert_eq!(s, schema);
+        assert!(*n >= 1);
+    }
+    assert_eq!(topics.len(), want.len(), "{topics:?}");
+    assert_eq!(topics["/landmarks"].1, 1);
+    // One transform per estimated pose.
+    let poses: usize = (1..=3).map(|r| topics[&format!("/robot/{r}/pose")].1).sum();
+    assert_eq!(topics["/tf"].1, poses);
 }
 
 /// SIGTERM (what `docker stop` sends): the server answers what is under way, stores a final

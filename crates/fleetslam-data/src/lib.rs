@@ -3,5 +3,6 @@
 pub mod evaluate;
 pub mod formats;
 pub mod import;
+pub mod mcap;
 pub mod run;
 pub mod sim;

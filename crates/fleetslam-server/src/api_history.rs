@@ -423,10 +423,10 @@ async fn export_log(store: &Store, row: &RunRow) -> Result<Vec<u8>, ApiError> {
     Ok(out)
 }
 
-/// `GET /v1/runs/{run}/export[?format=zip|log|landmarks|metrics|tum&robot=ID]`
+/// `GET /v1/runs/{run}/export[?format=zip|log|landmarks|metrics|tum|mcap&robot=ID]`
 #[utoipa::path(get, path = "/v1/runs/{run}/export", tag = "runs",
     params(("run" = String, Path, description = "Run id"),
-           ("format" = Option<String>, Query, description = "zip (default), log, landmarks, metrics, tum"),
+           ("format" = Option<String>, Query, description = "zip (default), log, landmarks, metrics, tum, mcap (Foxglove schemas: poses, frame transforms, landmarks with 2-sigma ellipses, ground truth when uploaded)"),
            ("robot" = Option<String>, Query, description = "The robot, for format=tum")),
     responses((status = 200, description = "A zip of trajectory_<robot>.tum, landmarks.csv, metrics.json and log.ndjson (the files `fleetslam run` writes, and the log it reads), or one of them")))]
 pub async fn export(
@@ -493,6 +493,31 @@ pub async fn export(
                 tum(pts).map_err(ApiError::internal)?,
             ))
         }
+        "mcap" => {
+            let truth = match state.store.get_artifact(&run, TRUTH).await? {
+                Some(t) => Some(
+                    history::truth_from_json(t.as_bytes())
+                        .map_err(|e| ApiError::internal(anyhow::anyhow!("stored truth: {e}")))?,
+                ),
+                None => None,
+            };
+            let mcap = tokio::task::spawn_blocking(move || {
+                fleetslam_data::mcap::write_mcap(&est, truth.as_ref())
+            })
+            .await
+            .map_err(ApiError::internal)?
+            .map_err(|e| match e {
+                fleetslam_data::mcap::McapError::Time(_) => {
+                    ApiError::Conflict(format!("run {run} cannot be exported as MCAP: {e}"))
+                }
+                other => ApiError::internal(other),
+            })?;
+            Ok(file(
+                format!("run-{run}.mcap"),
+                "application/octet-stream",
+                mcap,
+            ))
+        }
         "zip" => {
             let log = export_log(&state.store, &row).await?;
             let mut files: Vec<(String, Vec<u8>)> = Vec::new();
@@ -512,7 +537,7 @@ pub async fn export(
             Ok(file(format!("run-{run}.zip"), "application/zip", zip))
         }
         other => Err(ApiError::BadRequest(format!(
-            "format must be zip, log, landmarks, metrics or tum, got {other:?}"
+            "format must be zip, log, landmarks, metrics, tum or mcap, got {other:?}"
         ))),
     }
 }

@@ -76,17 +76,27 @@ export function getState(id, t) {
 }
 
 export const getTimeline = (id) => getJson(`/v1/runs/${enc(id)}/timeline`, { optional: true });
-export const getTrajectories = (id) =>
-  getJson(`/v1/runs/${enc(id)}/trajectories`, { optional: true });
+/** Each robot's mean pose after every record; only the points after data time `since`. */
+export function getTrajectories(id, since) {
+  const q = since === undefined || since === null ? "" : `?since=${enc(String(since))}`;
+  return getJson(`/v1/runs/${enc(id)}/trajectories${q}`, { optional: true });
+}
+/** The filter after every record (`[t, ess, step_ms, landmarks]`), thinned to `maxPoints`. */
+export const getSeries = (id, maxPoints) =>
+  getJson(`/v1/runs/${enc(id)}/series?max_points=${enc(String(maxPoints))}`, { optional: true });
 export const getTruth = (id) => getJson(`/v1/runs/${enc(id)}/truth`, { optional: true });
 export const getEvaluation = (id) =>
   getJson(`/v1/runs/${enc(id)}/evaluation`, { optional: true });
 
-/** The websocket URL of a run's live stream. */
+/**
+ * The websocket URL of a run's live stream, with compact states (only the landmarks that
+ * changed since the previous state; see `LiveSocket`).
+ */
 export function liveUrl(id) {
   const proto = location.protocol === "https:" ? "wss:" : "ws:";
-  const q = accessToken ? `?access_token=${enc(accessToken)}` : "";
-  return `${proto}//${location.host}/v1/runs/${enc(id)}/live${q}`;
+  const q = new URLSearchParams({ landmarks: "delta" });
+  if (accessToken) q.set("access_token", accessToken);
+  return `${proto}//${location.host}/v1/runs/${enc(id)}/live?${q}`;
 }
 
 /**

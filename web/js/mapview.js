@@ -7,6 +7,12 @@
 import { h } from "./util.js";
 
 const TWO_PI = Math.PI * 2;
+/** Radius [px] of a landmark's dot. */
+const DOT_RADIUS = 3.5;
+/** Landmark ids are written only while at most this many landmarks are on screen. */
+const MAX_LABELS = 400;
+/** Frames whose draw times are kept for `frameStats`. */
+const FRAME_WINDOW = 120;
 
 /** A "nice" step (1, 2 or 5 times a power of ten) of at least `raw`. */
 function niceStep(raw) {
@@ -29,6 +35,16 @@ export function ellipse2Sigma(a, b, c) {
   const l2 = Math.max(mid - d, 0);
   const angle = 0.5 * Math.atan2(2 * b, a - c);
   return [2 * Math.sqrt(l1), 2 * Math.sqrt(l2), angle];
+}
+
+/** What drawing a landmark needs, computed once per state: position, ellipse, label. */
+function landmarkGeometry(landmarks) {
+  return landmarks.map((l) => ({
+    x: l.mean[0],
+    y: l.mean[1],
+    e: l.cov ? ellipse2Sigma(l.cov[0], l.cov[1], l.cov[3]) : null,
+    label: l.id === null || l.id === undefined ? null : String(l.id),
+  }));
 }
 
 export class MapView {
@@ -83,6 +99,7 @@ export class MapView {
    *   particles: {id: [[x,y,th,w]]}, truth: {robots, landmarks} | null, colors: {id: css}}`
    */
   setData(d) {
+    if (d.landmarks && d.landmarks !== this.data.landmarks) this.geom = landmarkGeometry(d.landmarks);
     this.data = { ...this.data, ...d };
     if (d.colors) this.colors = d.colors;
     this.empty.hidden = this.hasContent();
@@ -162,8 +179,19 @@ export class MapView {
   }
 
   toScreen(x, y) {
-    const [w, h] = this.size();
+    // Within a frame the canvas's size is read once (reading it costs a layout query).
+    const [w, h] = this.frameSize || this.size();
     return [(x - this.cx) * this.scale + w / 2, h / 2 - (y - this.cy) * this.scale];
+  }
+
+  /** Draw times of the last frames [ms]: `{frames, mean, max}`. */
+  frameStats() {
+    const t = this.frameMs || [];
+    return {
+      frames: this.frames || 0,
+      mean: t.length ? t.reduce((a, b) => a + b, 0) / t.length : 0,
+      max: t.length ? Math.max(...t) : 0,
+    };
   }
 
   toWorld(sx, sy) {
@@ -252,9 +280,21 @@ export class MapView {
   }
 
   draw() {
+    const started = performance.now();
+    this.frameSize = null;
+    this.drawFrame();
+    this.frameSize = null;
+    this.frameMs = this.frameMs || [];
+    this.frameMs.push(performance.now() - started);
+    if (this.frameMs.length > FRAME_WINDOW) this.frameMs.shift();
+    this.frames = (this.frames || 0) + 1;
+  }
+
+  drawFrame() {
     this.dirty = false;
     const dpr = window.devicePixelRatio || 1;
     const [w, hgt] = this.size();
+    this.frameSize = [w, hgt];
     const pw = Math.round(w * dpr), ph = Math.round(hgt * dpr);
     if (this.canvas.width !== pw || this.canvas.height !== ph) {
       this.canvas.width = pw;
@@ -269,7 +309,7 @@ export class MapView {
     this.drawGrid(ctx, w, hgt);
     const d = this.data;
     if (d.truth && this.show.truth) this.drawTruth(ctx, d.truth);
-    this.drawLandmarks(ctx, d.landmarks);
+    this.drawLandmarks(ctx, w, hgt);
     if (this.show.trajectories) {
       for (const [id, tr] of Object.entries(d.trajectories || {})) {
         this.drawPath(ctx, tr, this.colors[id] || "#333", 2, []);
@@ -342,33 +382,52 @@ export class MapView {
     ctx.fillText(`${metres >= 1 ? metres : metres.toPrecision(1)} m`, x + px / 2, y - 4);
   }
 
-  drawLandmarks(ctx, landmarks) {
+  /**
+   * The landmarks on screen (with their ellipses' margin), each as one subpath of a few
+   * shared paths: one fill and one stroke for every ellipse, one fill for every dot.
+   */
+  drawLandmarks(ctx, w, hgt) {
     const s = this.scale;
-    for (const l of landmarks) {
-      const [sx, sy] = this.toScreen(l.mean[0], l.mean[1]);
-      if (this.show.ellipses && l.cov) {
-        const e = ellipse2Sigma(l.cov[0], l.cov[1], l.cov[3]);
-        if (e) {
-          ctx.beginPath();
-          ctx.ellipse(sx, sy, Math.max(e[0] * s, 0.5), Math.max(e[1] * s, 0.5), -e[2], 0, TWO_PI);
-          ctx.fillStyle = "rgba(20, 33, 61, 0.08)";
-          ctx.fill();
-          ctx.strokeStyle = "rgba(20, 33, 61, 0.55)";
-          ctx.lineWidth = 1.2;
-          ctx.stroke();
-        }
-      }
+    const shown = [];
+    for (const g of this.geom || []) {
+      const [sx, sy] = this.toScreen(g.x, g.y);
+      const r = g.e ? Math.max(g.e[0] * s, 4) : 4;
+      if (sx < -r || sy < -r || sx > w + r || sy > hgt + r) continue;
+      shown.push([g, sx, sy]);
+    }
+    if (this.show.ellipses) {
       ctx.beginPath();
-      ctx.arc(sx, sy, 3.5, 0, TWO_PI);
-      ctx.fillStyle = "#14213d";
+      for (const [g, sx, sy] of shown) {
+        if (!g.e) continue;
+        const rx = Math.max(g.e[0] * s, 0.5), ry = Math.max(g.e[1] * s, 0.5);
+        // An ellipse inside its landmark's dot cannot be seen: not drawn.
+        if (rx <= DOT_RADIUS && ry <= DOT_RADIUS) continue;
+        const rot = -g.e[2];
+        ctx.moveTo(sx + rx * Math.cos(rot), sy + rx * Math.sin(rot));
+        ctx.ellipse(sx, sy, rx, ry, rot, 0, TWO_PI);
+      }
+      ctx.fillStyle = "rgba(20, 33, 61, 0.08)";
       ctx.fill();
-      if (this.show.ids && l.id !== null && l.id !== undefined) {
-        ctx.font = "600 11px system-ui, sans-serif";
-        ctx.textAlign = "left"; ctx.textBaseline = "bottom";
-        ctx.lineWidth = 3; ctx.strokeStyle = "rgba(255,255,255,0.9)";
-        ctx.strokeText(String(l.id), sx + 5, sy - 3);
-        ctx.fillStyle = "#14213d";
-        ctx.fillText(String(l.id), sx + 5, sy - 3);
+      ctx.strokeStyle = "rgba(20, 33, 61, 0.55)";
+      ctx.lineWidth = 1.2;
+      ctx.stroke();
+    }
+    ctx.beginPath();
+    for (const [, sx, sy] of shown) {
+      ctx.moveTo(sx + DOT_RADIUS, sy);
+      ctx.arc(sx, sy, DOT_RADIUS, 0, TWO_PI);
+    }
+    ctx.fillStyle = "#14213d";
+    ctx.fill();
+    if (this.show.ids && shown.length <= MAX_LABELS) {
+      ctx.font = "600 11px system-ui, sans-serif";
+      ctx.textAlign = "left"; ctx.textBaseline = "bottom";
+      ctx.lineWidth = 3; ctx.strokeStyle = "rgba(255,255,255,0.9)";
+      ctx.fillStyle = "#14213d";
+      for (const [g, sx, sy] of shown) {
+        if (g.label === null) continue;
+        ctx.strokeText(g.label, sx + 5, sy - 3);
+        ctx.fillText(g.label, sx + 5, sy - 3);
       }
     }
   }
@@ -377,12 +436,17 @@ export class MapView {
     for (const [id, tr] of Object.entries(truth.robots || {})) {
       this.drawPath(ctx, tr, this.colors[id] || "#555", 1.5, [5, 4], 0.55);
     }
-    ctx.strokeStyle = "#6b7280";
-    ctx.lineWidth = 1.5;
+    // One path of the squares on screen (thousands of separate strokes cost a frame).
+    const [w, hgt] = this.frameSize || this.size();
+    ctx.beginPath();
     for (const l of truth.landmarks || []) {
       const [sx, sy] = this.toScreen(l.x, l.y);
-      ctx.strokeRect(sx - 5, sy - 5, 10, 10);
+      if (sx < -5 || sy < -5 || sx > w + 5 || sy > hgt + 5) continue;
+      ctx.rect(sx - 5, sy - 5, 10, 10);
     }
+    ctx.strokeStyle = "#6b7280";
+    ctx.lineWidth = 1.5;
+    ctx.stroke();
   }
 
   drawPath(ctx, tr, color, width, dash, alpha = 0.9) {

@@ -141,37 +141,56 @@ impl From<PolicyArg> for Policy {
     }
 }
 
-#[derive(Debug, Args)]
+/// `serve`'s flags: the top layer of the server's configuration
+/// ([`fleetslam_server::config::ServerConfig::load`]); a flag not given leaves the layers
+/// below (defaults, the TOML file, `FLEETSLAM_*` variables).
+#[derive(Debug, Args, serde::Serialize)]
 struct ServeArgs {
     /// A TOML file (see fleetslam.example.toml); FLEETSLAM_* variables and flags override it.
     #[arg(long)]
+    #[serde(skip)]
     config: Option<PathBuf>,
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     bind: Option<String>,
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     data_dir: Option<PathBuf>,
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     database_url: Option<String>,
     /// Token for creating, ending and deleting runs and registering robots (at least 16
     /// characters); required to serve a non-loopback address.
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     admin_token: Option<String>,
     /// Token for reading (state, runs, exports, metrics) when reads need one.
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     read_token: Option<String>,
     /// Serve as one replica of a cluster: records through NATS JetStream (--nats), runs
     /// owned by lease, the store in PostgreSQL (--database-url) shared by every replica.
     #[arg(long)]
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
     cluster: bool,
     /// NATS servers (comma-separated) for --cluster.
     #[arg(long)]
+    #[serde(rename = "nats_url", skip_serializing_if = "Option::is_none")]
     nats: Option<String>,
     /// This replica's name in the cluster (default: a random one).
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     replica_id: Option<String>,
     /// Replicas of the record stream and lease buckets (3 on a 3-node NATS cluster).
     #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
     stream_replicas: Option<usize>,
+    /// Also stream live runs to Foxglove over its WebSocket protocol on this address
+    /// (e.g. 127.0.0.1:8765; in Foxglove: Open connection, Foxglove WebSocket,
+    /// ws://127.0.0.1:8765).
+    #[arg(long)]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    foxglove_bind: Option<String>,
 }
 
 #[derive(Debug, Args)]
@@ -213,6 +232,23 @@ struct ReplayArgs {
     /// for the dashboard's overlay and GET /v1/runs/{id}/evaluation.
     #[arg(long)]
     truth: Option<PathBuf>,
+    /// A request that failed for a reason that may pass (no answer, 5xx, 503/429 busy) is
+    /// retried after this many seconds at first, then doubling waits (each plus a random
+    /// jitter of up to its own length), and never sooner than the server's Retry-After.
+    #[arg(long, value_name = "SECONDS", default_value_t = replay::RetryPolicy::DEFAULT.min_delay.as_secs_f64())]
+    retry_min_delay: f64,
+    /// The longest wait between retries, in seconds, before jitter (Retry-After may ask
+    /// for longer).
+    #[arg(long, value_name = "SECONDS", default_value_t = replay::RetryPolicy::DEFAULT.max_delay.as_secs_f64())]
+    retry_max_delay: f64,
+    /// Give up on a request (and fail the replay) when its next attempt would start more
+    /// than this many seconds after its first; the default survives a server restart.
+    #[arg(long, value_name = "SECONDS", default_value_t = replay::RetryPolicy::DEFAULT.max_elapsed.as_secs_f64())]
+    retry_max_elapsed: f64,
+    /// Also give up on a request after this many attempts (default: only
+    /// --retry-max-elapsed bounds them).
+    #[arg(long, value_name = "N")]
+    retry_max_attempts: Option<usize>,
 }
 
 #[derive(Debug, Args)]
@@ -745,41 +781,16 @@ fn init_tracing() {
 
 async fn cmd_serve(a: ServeArgs) -> Result<()> {
     use fleetslam_server::config::ServerConfig;
-    let mut cfg = ServerConfig::load(a.config.as_deref(), |k| std::env::var(k).ok())
-        .map_err(anyhow::Error::msg)?;
-    if let Some(v) = a.bind {
-        cfg.bind = v;
-    }
-    if let Some(v) = a.data_dir {
-        cfg.data_dir = v;
-    }
-    if let Some(v) = a.database_url {
-        cfg.database_url = Some(v);
-    }
-    if let Some(v) = a.admin_token {
-        cfg.admin_token = Some(v);
-    }
-    if let Some(v) = a.read_token {
-        cfg.read_token = Some(v);
-    }
-    if a.cluster {
-        cfg.cluster = true;
-    }
-    if let Some(v) = a.nats {
-        cfg.nats_url = Some(v);
-    }
-    if let Some(v) = a.replica_id {
-        cfg.replica_id = Some(v);
-    }
-    if let Some(v) = a.stream_replicas {
-        cfg.stream_replicas = v;
-    }
+    let cfg = ServerConfig::load(a.config.as_deref(), &a).map_err(anyhow::Error::msg)?;
     let running = fleetslam_server::server::start(&cfg).await?;
     println!(
         "fleetslam serving on http://{} (store: {})",
         running.addr,
         running.store.backend()
     );
+    if let Some(f) = running.foxglove {
+        println!("Foxglove live view: ws://{f} (Foxglove: Open connection, Foxglove WebSocket)");
+    }
     let signal = fleetslam_server::server::shutdown_signal().await?;
     // On stderr: stdout may be a pipe nobody reads any more.
     eprintln!("{signal}: stopping (answering requests under way, storing snapshots)");
@@ -800,6 +811,28 @@ fn replay_options(a: &ReplayArgs) -> Result<replay::ReplayOptions> {
     if !(a.speed.is_finite() && a.speed > 0.0) {
         bail!("--speed must be > 0, got {}", a.speed);
     }
+    let seconds = |flag: &str, s: f64| {
+        std::time::Duration::try_from_secs_f64(s)
+            .ok()
+            .filter(|d| !d.is_zero())
+            .with_context(|| format!("{flag} must be a number of seconds > 0, got {s}"))
+    };
+    let retry = replay::RetryPolicy {
+        min_delay: seconds("--retry-min-delay", a.retry_min_delay)?,
+        max_delay: seconds("--retry-max-delay", a.retry_max_delay)?,
+        max_elapsed: seconds("--retry-max-elapsed", a.retry_max_elapsed)?,
+        max_attempts: a.retry_max_attempts,
+    };
+    if retry.max_delay < retry.min_delay {
+        bail!(
+            "--retry-max-delay ({}) must not be below --retry-min-delay ({})",
+            a.retry_max_delay,
+            a.retry_min_delay
+        );
+    }
+    if retry.max_attempts == Some(0) {
+        bail!("--retry-max-attempts must be at least 1");
+    }
     Ok(replay::ReplayOptions {
         servers: a.server.clone(),
         run: a.run.clone(),
@@ -813,6 +846,7 @@ fn replay_options(a: &ReplayArgs) -> Result<replay::ReplayOptions> {
         batch: a.batch,
         progress: true,
         training_rate: a.log_training,
+        retry,
     })
 }
 
@@ -889,6 +923,7 @@ async fn cmd_demo(a: DemoArgs) -> Result<()> {
                 batch: 50,
                 progress: false,
                 training_rate: None,
+                retry: replay::RetryPolicy::default(),
             };
             let (run, tokens) = replay::setup(&sim.log, &o).await?;
             replay::put_truth(&o, &run, &sim.truth).await?;

@@ -2,18 +2,22 @@
 //!
 //! Each robot posts its own records in order with its own token, in real time (scaled) or
 //! as fast as the server accepts. A request that fails for a reason that may pass (no
-//! connection, 5xx, 503 busy) is retried with backoff: records carry sequence numbers and a
-//! repeat is acknowledged again and applied once, so a replay survives a server restart.
+//! connection, 5xx, 503/429 busy) is retried with jittered exponential backoff, never
+//! sooner than the server's Retry-After, until the bound of [`RetryPolicy`]: records carry
+//! sequence numbers and a repeat is acknowledged again and applied once, so a replay
+//! survives a server restart.
 //!
 //! Given several servers (the replicas of a cluster), the robots are spread over them
 //! (robot k posts to server k mod n) and a robot whose server fails moves on to the next.
 
 use anyhow::{Context, Result};
+use backon::{ExponentialBuilder, Retryable};
 use fleetslam_core::log::{Log, Record};
 use indicatif::{ProgressBar, ProgressStyle};
+use reqwest::StatusCode;
 use serde_json::{Value, json};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 /// How to pace the records.
@@ -40,6 +44,68 @@ pub struct ReplayOptions {
     pub progress: bool,
     /// A new run logs this fraction of its landmark updates as training rows.
     pub training_rate: Option<f64>,
+    /// How a robot retries a request of records that failed for a reason that may pass.
+    pub retry: RetryPolicy,
+}
+
+/// How a robot retries a POST of its records that failed for a reason that may pass: no
+/// answer, 5xx, or 503/429 (busy).
+///
+/// The waits grow exponentially (doubling) from `min_delay` to `max_delay`, each with a
+/// random jitter of up to its own length added (so a wait lies in `[d, 2d)`), so robots
+/// that failed together do not all come back at once. A `Retry-After` (seconds) on a
+/// 503/429 answer is a floor: the next attempt waits at least that long. The robot gives up
+/// on the request, and the replay fails, once the next attempt would start more than
+/// `max_elapsed` after the first, or after `max_attempts` attempts.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RetryPolicy {
+    /// The first wait (before jitter). Default 50 ms.
+    pub min_delay: Duration,
+    /// The longest wait before jitter (Retry-After may ask for longer). Default 2 s.
+    pub max_delay: Duration,
+    /// No attempt starts later than this after the request's first one. Default 60 s: a
+    /// server restart (or a replica's failover) of well over 10 s is survived.
+    pub max_elapsed: Duration,
+    /// Attempts per request, the first included (`None`: only `max_elapsed` bounds them).
+    /// Default `None`.
+    pub max_attempts: Option<usize>,
+}
+
+impl RetryPolicy {
+    pub const DEFAULT: RetryPolicy = RetryPolicy {
+        min_delay: Duration::from_millis(50),
+        max_delay: Duration::from_secs(2),
+        max_elapsed: Duration::from_secs(60),
+        max_attempts: None,
+    };
+
+    /// The backoff (without the elapsed-time bound, which [`post_records`] applies).
+    fn backoff(&self) -> ExponentialBuilder {
+        let b = ExponentialBuilder::default()
+            .with_min_delay(self.min_delay)
+            .with_max_delay(self.max_delay.max(self.min_delay))
+            .with_factor(2.0)
+            .with_jitter();
+        match self.max_attempts {
+            Some(n) => b.with_max_times(n.saturating_sub(1)),
+            None => b.without_max_times(),
+        }
+    }
+
+    /// The bound, for the give-up message.
+    fn bound(&self) -> String {
+        let elapsed = self.max_elapsed.as_secs_f64();
+        match self.max_attempts {
+            Some(n) => format!("bound: {n} attempts or {elapsed} s"),
+            None => format!("bound: {elapsed} s"),
+        }
+    }
+}
+
+impl Default for RetryPolicy {
+    fn default() -> Self {
+        Self::DEFAULT
+    }
 }
 
 #[derive(Debug, Default, serde::Serialize)]
@@ -156,6 +222,198 @@ async fn post_json(
     Ok(v)
 }
 
+/// Why one POST of a robot's records failed.
+#[derive(Debug)]
+enum Failure {
+    /// 503 or 429: the server is busy; the same server is asked again, not before
+    /// Retry-After.
+    Busy {
+        url: String,
+        status: StatusCode,
+        message: String,
+        retry_after: Option<Duration>,
+    },
+    /// Another 5xx: the next server takes the robot.
+    ServerError {
+        url: String,
+        status: StatusCode,
+        message: String,
+    },
+    /// No answer (no connection, timeout, broken answer): this server may be gone; the next
+    /// one takes the robot.
+    NoAnswer { url: String, error: reqwest::Error },
+    /// Another 4xx: final.
+    Refused {
+        url: String,
+        status: StatusCode,
+        message: String,
+    },
+}
+
+impl Failure {
+    /// Whether the robot moves on to the next server before it tries again.
+    fn moves_on(&self) -> bool {
+        matches!(self, Failure::ServerError { .. } | Failure::NoAnswer { .. })
+    }
+}
+
+impl std::fmt::Display for Failure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Failure::Busy {
+                url,
+                status,
+                message,
+                retry_after,
+            } => {
+                write!(f, "POST {url}: {status}: {message}")?;
+                if let Some(r) = retry_after {
+                    write!(f, " (Retry-After: {} s)", r.as_secs())?;
+                }
+                Ok(())
+            }
+            Failure::ServerError {
+                url,
+                status,
+                message,
+            }
+            | Failure::Refused {
+                url,
+                status,
+                message,
+            } => write!(f, "POST {url}: {status}: {message}"),
+            Failure::NoAnswer { url, error } => {
+                write!(f, "POST {url}: no answer: {error}")?;
+                let mut source = std::error::Error::source(error);
+                while let Some(e) = source {
+                    write!(f, ": {e}")?;
+                    source = e.source();
+                }
+                Ok(())
+            }
+        }
+    }
+}
+
+/// The seconds form of a Retry-After header (the HTTP-date form is not used by the server).
+fn retry_after(headers: &reqwest::header::HeaderMap) -> Option<Duration> {
+    let v = headers.get(reqwest::header::RETRY_AFTER)?.to_str().ok()?;
+    v.trim().parse::<u64>().ok().map(Duration::from_secs)
+}
+
+/// The `message` of an error body, else the body itself (shortened).
+fn server_message(body: &str) -> String {
+    match serde_json::from_str::<Value>(body) {
+        Ok(v) if v["message"].is_string() => v["message"].as_str().unwrap_or_default().into(),
+        _ if body.trim().is_empty() => "(no message)".into(),
+        _ => body.trim().chars().take(300).collect(),
+    }
+}
+
+/// POSTs one request of a robot's records to `urls[at]`, retrying under `policy`: 503/429
+/// on the same server, another 5xx or no answer on the next one (`at` moves on); a 2xx or
+/// 409 answer is returned with the answering attempt's latency [ms]; another 4xx fails at
+/// once. Each retry counts in `retried`.
+async fn post_records(
+    c: &reqwest::Client,
+    urls: &[String],
+    token: &str,
+    records: &[Record],
+    policy: &RetryPolicy,
+    at: &AtomicUsize,
+    retried: &AtomicU64,
+) -> Result<(Value, f64)> {
+    let started = Instant::now();
+    let attempts = AtomicUsize::new(0);
+    let attempts_ref = &attempts;
+    let attempt = move || async move {
+        attempts_ref.fetch_add(1, Ordering::Relaxed);
+        let url = &urls[at.load(Ordering::Relaxed) % urls.len()];
+        let t0 = Instant::now();
+        let no_answer = |error| Failure::NoAnswer {
+            url: url.clone(),
+            error,
+        };
+        let resp = c
+            .post(url)
+            .bearer_auth(token)
+            .json(records)
+            .send()
+            .await
+            .map_err(no_answer)?;
+        let status = resp.status();
+        if status.is_success() || status == StatusCode::CONFLICT {
+            let v: Value = resp.json().await.unwrap_or(Value::Null);
+            return Ok((v, t0.elapsed().as_secs_f64() * 1e3));
+        }
+        let retry_after = retry_after(resp.headers());
+        let message = server_message(&resp.text().await.unwrap_or_default());
+        let url = url.clone();
+        Err(
+            if status == StatusCode::SERVICE_UNAVAILABLE || status == StatusCode::TOO_MANY_REQUESTS
+            {
+                Failure::Busy {
+                    url,
+                    status,
+                    message,
+                    retry_after,
+                }
+            } else if status.is_server_error() {
+                Failure::ServerError {
+                    url,
+                    status,
+                    message,
+                }
+            } else {
+                Failure::Refused {
+                    url,
+                    status,
+                    message,
+                }
+            },
+        )
+    };
+    let result = attempt
+        .retry(policy.backoff())
+        .when(|f: &Failure| !matches!(f, Failure::Refused { .. }))
+        .adjust(|f: &Failure, wait: Option<Duration>| {
+            // None: out of attempts.
+            let wait = match f {
+                Failure::Busy {
+                    retry_after: Some(r),
+                    ..
+                } => wait?.max(*r),
+                _ => wait?,
+            };
+            (started.elapsed() + wait <= policy.max_elapsed).then_some(wait)
+        })
+        .notify(|f: &Failure, _wait: Duration| {
+            if f.moves_on() {
+                at.fetch_add(1, Ordering::Relaxed);
+            }
+            retried.fetch_add(1, Ordering::Relaxed);
+        })
+        .await;
+    result.map_err(|f| {
+        let robot = records.first().map_or("?", |r| r.robot.as_str());
+        let seqs = match (records.first(), records.last()) {
+            (Some(a), Some(b)) if a.seq != b.seq => format!("records seq {}..={}", a.seq, b.seq),
+            (Some(a), _) => format!("record seq {}", a.seq),
+            _ => "no records".into(),
+        };
+        let n = attempts.load(Ordering::Relaxed);
+        if let Failure::Refused { .. } = f {
+            anyhow::anyhow!("robot {robot}: {seqs} refused: {f}")
+        } else {
+            anyhow::anyhow!(
+                "robot {robot}: gave up on {seqs} after {n} attempts in {:.1} s ({}); last failure: {f}",
+                started.elapsed().as_secs_f64(),
+                policy.bound()
+            )
+        }
+    })
+}
+
 /// Uploads a run's ground truth (`PUT /v1/runs/{run}/truth`).
 pub async fn put_truth(
     o: &ReplayOptions,
@@ -260,14 +518,14 @@ pub async fn play(
             .cloned()
             .collect();
         let (c, counters, bar, bases) = (client()?, counters.clone(), bar.clone(), o.bases(k));
-        let (run, pace, batch) = (run.to_string(), o.pace, o.batch.max(1));
+        let (run, pace, batch, retry) = (run.to_string(), o.pace, o.batch.max(1), o.retry);
         tasks.push(tokio::spawn(async move {
             let urls: Vec<String> = bases
                 .iter()
                 .map(|b| format!("{b}/v1/runs/{run}/observations"))
                 .collect();
             // The server this robot posts to; it moves on when that one fails.
-            let mut at = 0;
+            let at = AtomicUsize::new(0);
             let mut latencies = Vec::with_capacity(records.len());
             let mut i = 0;
             while i < records.len() {
@@ -288,55 +546,25 @@ pub async fn play(
                     n = batch.min(records.len() - i);
                 }
                 let chunk = &records[i..i + n];
-                let mut backoff = Duration::from_millis(50);
-                loop {
-                    let t0 = Instant::now();
-                    let url = &urls[at % urls.len()];
-                    let sent = c.post(url).bearer_auth(&token).json(chunk).send().await;
-                    match sent {
-                        Ok(resp)
-                            if resp.status().is_success()
-                                || resp.status() == reqwest::StatusCode::CONFLICT =>
-                        {
-                            let v: Value = resp.json().await.unwrap_or(Value::Null);
-                            latencies.push(t0.elapsed().as_secs_f64() * 1e3);
-                            for a in v["acks"].as_array().into_iter().flatten() {
-                                match a["status"].as_str() {
-                                    Some("stored") => {
-                                        counters.acked.fetch_add(1, Ordering::Relaxed);
-                                    }
-                                    Some("duplicate") => {
-                                        counters.acked.fetch_add(1, Ordering::Relaxed);
-                                        counters.dups.fetch_add(1, Ordering::Relaxed);
-                                    }
-                                    _ => {
-                                        counters.rejected.fetch_add(1, Ordering::Relaxed);
-                                        bar.println(format!(
-                                            "robot {robot}: rejected: {}",
-                                            a["error"]
-                                        ));
-                                    }
-                                }
-                            }
-                            bar.inc(n as u64);
-                            break;
+                let (v, latency_ms) =
+                    post_records(&c, &urls, &token, chunk, &retry, &at, &counters.retried).await?;
+                latencies.push(latency_ms);
+                for a in v["acks"].as_array().into_iter().flatten() {
+                    match a["status"].as_str() {
+                        Some("stored") => {
+                            counters.acked.fetch_add(1, Ordering::Relaxed);
                         }
-                        Ok(resp)
-                            if resp.status() == reqwest::StatusCode::SERVICE_UNAVAILABLE
-                                || resp.status() == reqwest::StatusCode::TOO_MANY_REQUESTS => {}
-                        Ok(resp) if resp.status().is_server_error() => at += 1,
-                        Ok(resp) => {
-                            let status = resp.status();
-                            let v: Value = resp.json().await.unwrap_or(Value::Null);
-                            anyhow::bail!("robot {robot}: {status}: {}", v["message"]);
+                        Some("duplicate") => {
+                            counters.acked.fetch_add(1, Ordering::Relaxed);
+                            counters.dups.fetch_add(1, Ordering::Relaxed);
                         }
-                        // No answer: this server may be gone; the next one takes the robot.
-                        Err(_) => at += 1,
+                        _ => {
+                            counters.rejected.fetch_add(1, Ordering::Relaxed);
+                            bar.println(format!("robot {robot}: rejected: {}", a["error"]));
+                        }
                     }
-                    counters.retried.fetch_add(1, Ordering::Relaxed);
-                    tokio::time::sleep(backoff).await;
-                    backoff = (backoff * 2).min(Duration::from_secs(2));
                 }
+                bar.inc(n as u64);
                 i += n;
             }
             Ok::<_, anyhow::Error>(latencies)

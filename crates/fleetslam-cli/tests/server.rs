@@ -92,8 +92,10 @@ fn replay_into_a_served_run() {
         ("/landmarks".to_string(), "foxglove.SceneUpdate"),
         ("/truth/landmarks".to_string(), "foxglove.SceneUpdate"),
     ];
+    want.push(("/filter".to_string(), "fleetslam.FilterStats"));
     for r in 1..=3 {
         want.push((format!("/robot/{r}/pose"), "foxglove.PoseInFrame"));
+        want.push((format!("/robot/{r}/particles"), "foxglove.PosesInFrame"));
         want.push((format!("/truth/{r}/pose"), "foxglove.PoseInFrame"));
     }
     for (topic, schema) in &want {
@@ -108,6 +110,63 @@ fn replay_into_a_served_run() {
     // One transform per estimated pose.
     let poses: usize = (1..=3).map(|r| topics[&format!("/robot/{r}/pose")].1).sum();
     assert_eq!(topics["/tf"].1, poses);
+    // The filter after every record; one particle sample per robot, at the end.
+    assert_eq!(topics["/filter"].1, records);
+    for r in 1..=3 {
+        assert_eq!(topics[&format!("/robot/{r}/particles")].1, 1);
+    }
+
+    // The same series over HTTP, whole, after a time, and thinned.
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let get = |path: &str| -> serde_json::Value {
+        rt.block_on(async {
+            let r = reqwest::get(format!("{url}{path}")).await.unwrap();
+            assert!(r.status().is_success(), "{path}: {}", r.status());
+            r.json().await.unwrap()
+        })
+    };
+    let all = get(&format!("/v1/runs/{run}/series"));
+    assert_eq!(
+        all["columns"],
+        serde_json::json!(["t", "ess", "step_ms", "landmarks"])
+    );
+    let pts = all["points"].as_array().unwrap();
+    assert_eq!(pts.len(), records);
+    let t = |p: &serde_json::Value| p[0].as_f64().unwrap();
+    assert!(pts.windows(2).all(|w| t(&w[0]) <= t(&w[1])));
+    for p in pts {
+        let ess = p[1].as_f64().unwrap();
+        assert!(ess > 0.0 && ess <= 30.0 + 1e-9, "{p}");
+        assert!(p[2].as_f64().unwrap() >= 0.0, "{p}");
+    }
+    let mid = t(&pts[pts.len() / 2]);
+    let later = get(&format!("/v1/runs/{run}/series?since={mid}"));
+    let later = later["points"].as_array().unwrap();
+    assert_eq!(
+        later.as_slice(),
+        &pts[pts.iter().position(|p| t(p) > mid).unwrap()..]
+    );
+    let thin = get(&format!("/v1/runs/{run}/series?max_points=10"));
+    let thin = thin["points"].as_array().unwrap();
+    assert_eq!(thin.len(), 10);
+    assert_eq!(thin.last(), pts.last());
+    // Trajectories too: only the points after a time.
+    let whole = get(&format!("/v1/runs/{run}/trajectories"));
+    let tail = get(&format!("/v1/runs/{run}/trajectories?since={mid}"));
+    for r in 1..=3 {
+        let w = whole["robots"][r.to_string()].as_array().unwrap();
+        let k = w.iter().position(|p| t(p) > mid).unwrap();
+        assert_eq!(
+            tail["robots"][r.to_string()].as_array().unwrap().as_slice(),
+            &w[k..]
+        );
+    }
+    let bad = rt.block_on(async {
+        reqwest::get(format!("{url}/v1/runs/{run}/series?max_points=0"))
+            .await
+            .unwrap()
+    });
+    assert_eq!(bad.status(), reqwest::StatusCode::BAD_REQUEST);
 }
 
 /// SIGTERM (what `docker stop` sends): the server answers what is under way, stores a final
@@ -166,6 +225,7 @@ fn sigterm_stops_cleanly_with_final_snapshots() {
         assert!(std::time::Instant::now() < deadline, "records not applied");
         std::thread::sleep(std::time::Duration::from_millis(200));
     }
+    let series = common::get_json(&rt, &format!("{url}/v1/runs/{run}/series"));
     let term = Command::new("kill")
         .args(["-TERM", &server.0.id().to_string()])
         .status()
@@ -191,4 +251,9 @@ fn sigterm_stops_cleanly_with_final_snapshots() {
         applied(&format!("{url}/v1/runs/{run}/state")),
         records as u64
     );
+    // The filter's series came back with it, point for point (step times included: none
+    // was stepped again).
+    let after = common::get_json(&rt, &format!("{url}/v1/runs/{run}/series"));
+    assert_eq!(after, series);
+    assert_eq!(series["points"].as_array().unwrap().len(), records);
 }

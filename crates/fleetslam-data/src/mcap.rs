@@ -6,19 +6,26 @@
 //! | `/tf` | `foxglove.FrameTransform` | `world` → `robot_<id>`, one per trajectory pose |
 //! | `/robot/<id>/pose` | `foxglove.PoseInFrame` | the estimated pose, one per trajectory pose |
 //! | `/landmarks` | `foxglove.SceneUpdate` | one, at the last pose's time: per landmark a flat cylinder spanning its 2-sigma ellipse and its id as text |
+//! | `/robot/<id>/particles` | `foxglove.PosesInFrame` | the particle sample's poses at the last pose's time, when given |
+//! | `/filter` | `fleetslam.FilterStats` (JSON) | the filter after each applied record: `ess`, `step_ms`, `landmarks` (for Foxglove's Plot panel), when given |
 //! | `/truth/<id>/pose` | `foxglove.PoseInFrame` | ground truth, when given |
 //! | `/truth/landmarks` | `foxglove.SceneUpdate` | the true landmarks, when given |
+//!
+//! The live server (`fleetslam serve --foxglove-bind`) streams the same messages through
+//! [`RunChannels`], under `/run/<id>` (`/run/<id>/tf`, `/run/<id>/robot/<rid>/pose`, ...),
+//! logged at the wall clock and refreshed at the server's state rate.
 //!
 //! Times are the run's own (seconds, as the log's records carry them) as nanoseconds since
 //! the epoch; a run whose times are negative cannot be written (MCAP times are unsigned).
 
-use crate::formats::{LandmarkRow, TrajectoryPoint, Truth};
+use crate::formats::{LandmarkRow, Truth};
 use fleetslam_core::pose::Pose2;
 use foxglove::schemas::{
-    Color, CylinderPrimitive, FrameTransform, Pose, PoseInFrame, Quaternion, SceneEntity,
-    SceneUpdate, SpherePrimitive, TextPrimitive, Timestamp, Vector3,
+    Color, CylinderPrimitive, FrameTransform, Pose, PoseInFrame, PosesInFrame, Quaternion,
+    SceneEntity, SceneEntityDeletion, SceneUpdate, SpherePrimitive, TextPrimitive, Timestamp,
+    Vector3, scene_entity_deletion,
 };
-use foxglove::{Channel, Context, McapWriter};
+use foxglove::{Channel, Context, McapWriter, PartialMetadata, RawChannel, Schema};
 use std::collections::BTreeMap;
 use std::io::Cursor;
 use std::sync::Arc;
@@ -132,85 +139,276 @@ fn truth_entity(t: Timestamp, k: usize, l: &LandmarkRow) -> SceneEntity {
     }
 }
 
-fn poses(
-    ctx: &Arc<Context>,
-    prefix: &str,
-    trajectories: &BTreeMap<String, Vec<TrajectoryPoint>>,
-    tf: Option<&Channel<FrameTransform>>,
-) -> Result<(), McapError> {
-    for (robot, pts) in trajectories {
-        let ch = ctx
-            .channel_builder(format!("/{prefix}/{robot}/pose"))
-            .build::<PoseInFrame>();
-        for p in pts {
-            let t = stamp(p.t)?;
-            ch.log_with_time(
-                &PoseInFrame {
-                    timestamp: Some(t),
-                    frame_id: WORLD_FRAME.into(),
-                    pose: Some(robot_pose(&p.pose)),
-                },
-                t,
-            );
-            if let Some(tf) = tf {
-                tf.log_with_time(
-                    &FrameTransform {
-                        timestamp: Some(t),
-                        parent_frame_id: WORLD_FRAME.into(),
-                        child_frame_id: format!("robot_{robot}"),
-                        translation: Some(Vector3 {
-                            x: p.pose.x,
-                            y: p.pose.y,
-                            z: 0.0,
-                        }),
-                        rotation: Some(quaternion(p.pose.theta)),
-                    },
-                    t,
-                );
-            }
-        }
-    }
-    Ok(())
+/// The JSON schema of the `/filter` topic's messages.
+const FILTER_STATS_SCHEMA: &str = r#"{
+  "title": "fleetslam.FilterStats",
+  "description": "The filter after an applied record",
+  "type": "object",
+  "properties": {
+    "t": {"type": "number", "description": "data time [s]"},
+    "ess": {"type": "number", "description": "effective sample size"},
+    "step_ms": {"type": "number", "description": "wall time of the record's step [ms]"},
+    "landmarks": {"type": "number", "description": "landmarks in the best particle"}
+  }
+}"#;
+
+/// The time a message is logged at (its own `timestamp` is always the data time it
+/// describes).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LogTime {
+    /// The data time: a file, which readers play back in data time.
+    Data,
+    /// The wall clock when it is logged: a live view.
+    Wall,
 }
 
-/// The MCAP file of a run's estimate (trajectories and landmarks) and, when given, its
-/// ground truth.
-pub fn write_mcap(estimate: &Truth, truth: Option<&Truth>) -> Result<Vec<u8>, McapError> {
+/// One run's channels in a Foxglove [`Context`], under a topic prefix (`""` in a file,
+/// `/run/<id>` on the live server; see the module's doc for the topics). The MCAP export
+/// and the live server (`serve --foxglove-bind`) log through it, so both carry the same
+/// messages. A robot's channels are made when it is first logged.
+#[derive(Debug)]
+pub struct RunChannels {
+    ctx: Arc<Context>,
+    prefix: String,
+    time: LogTime,
+    tf: Channel<FrameTransform>,
+    landmarks: Channel<SceneUpdate>,
+    poses: BTreeMap<String, Channel<PoseInFrame>>,
+    particles: BTreeMap<String, Channel<PosesInFrame>>,
+    filter: Arc<RawChannel>,
+}
+
+impl RunChannels {
+    pub fn new(ctx: &Arc<Context>, prefix: &str, time: LogTime) -> Result<Self, McapError> {
+        let filter = ctx
+            .channel_builder(format!("{prefix}/filter"))
+            .message_encoding("json")
+            .schema(Schema::new(
+                "fleetslam.FilterStats",
+                "jsonschema",
+                FILTER_STATS_SCHEMA.as_bytes(),
+            ))
+            .build_raw()
+            .map_err(|e| McapError::Write(e.to_string()))?;
+        Ok(Self {
+            ctx: ctx.clone(),
+            prefix: prefix.to_string(),
+            time,
+            tf: ctx
+                .channel_builder(format!("{prefix}/tf"))
+                .build::<FrameTransform>(),
+            landmarks: ctx
+                .channel_builder(format!("{prefix}/landmarks"))
+                .build::<SceneUpdate>(),
+            poses: BTreeMap::new(),
+            particles: BTreeMap::new(),
+            filter,
+        })
+    }
+
+    fn meta(&self, t: Timestamp) -> PartialMetadata {
+        match self.time {
+            LogTime::Data => PartialMetadata::with_log_time(t),
+            LogTime::Wall => PartialMetadata::default(),
+        }
+    }
+
+    /// Whether any sink (a file, a live client) takes any of the run's channels: a live
+    /// server skips building messages nobody subscribed to.
+    pub fn has_sinks(&self) -> bool {
+        self.tf.has_sinks()
+            || self.landmarks.has_sinks()
+            || self.poses.values().any(Channel::has_sinks)
+            || self.particles.values().any(Channel::has_sinks)
+            || self.filter.has_sinks()
+    }
+
+    /// Makes a robot's channels (so that a live client sees them advertised) without
+    /// logging.
+    pub fn add_robot(&mut self, robot: &str) {
+        let (ctx, prefix) = (&self.ctx, &self.prefix);
+        self.poses.entry(robot.to_string()).or_insert_with(|| {
+            ctx.channel_builder(format!("{prefix}/robot/{robot}/pose"))
+                .build()
+        });
+        self.particles.entry(robot.to_string()).or_insert_with(|| {
+            ctx.channel_builder(format!("{prefix}/robot/{robot}/particles"))
+                .build()
+        });
+    }
+
+    /// A robot's pose at `t`: `{prefix}/robot/<id>/pose` and the `world` → `robot_<id>`
+    /// transform on `{prefix}/tf`.
+    pub fn pose(&mut self, robot: &str, t: f64, p: &Pose2) -> Result<(), McapError> {
+        let ts = stamp(t)?;
+        self.add_robot(robot);
+        let meta = self.meta(ts);
+        self.poses[robot].log_with_meta(
+            &PoseInFrame {
+                timestamp: Some(ts),
+                frame_id: WORLD_FRAME.into(),
+                pose: Some(robot_pose(p)),
+            },
+            meta,
+        );
+        self.tf.log_with_meta(
+            &FrameTransform {
+                timestamp: Some(ts),
+                parent_frame_id: WORLD_FRAME.into(),
+                child_frame_id: format!("robot_{robot}"),
+                translation: Some(Vector3 {
+                    x: p.x,
+                    y: p.y,
+                    z: 0.0,
+                }),
+                rotation: Some(quaternion(p.theta)),
+            },
+            meta,
+        );
+        Ok(())
+    }
+
+    /// The map at `t` on `{prefix}/landmarks`: it replaces the map logged before (landmarks
+    /// that were removed go), each landmark a flat cylinder spanning its 2-sigma ellipse
+    /// and its id as text.
+    pub fn landmarks(&self, t: f64, landmarks: &[LandmarkRow]) -> Result<(), McapError> {
+        let ts = stamp(t)?;
+        let color = Color {
+            r: 0.9,
+            g: 0.4,
+            b: 0.1,
+            a: 0.6,
+        };
+        self.landmarks.log_with_meta(
+            &SceneUpdate {
+                deletions: vec![SceneEntityDeletion {
+                    timestamp: Some(ts),
+                    r#type: scene_entity_deletion::Type::All as i32,
+                    id: String::new(),
+                }],
+                entities: landmarks
+                    .iter()
+                    .enumerate()
+                    .map(|(k, l)| landmark_entity(ts, k, l, color))
+                    .collect(),
+            },
+            self.meta(ts),
+        );
+        Ok(())
+    }
+
+    /// A sample of a robot's particles at `t` (`[x, y, theta, weight]`) on
+    /// `{prefix}/robot/<id>/particles`.
+    pub fn particles(&mut self, robot: &str, t: f64, sample: &[[f64; 4]]) -> Result<(), McapError> {
+        let ts = stamp(t)?;
+        self.add_robot(robot);
+        self.particles[robot].log_with_meta(
+            &PosesInFrame {
+                timestamp: Some(ts),
+                frame_id: WORLD_FRAME.into(),
+                poses: sample.iter().map(|p| pose(p[0], p[1], 0.0, p[2])).collect(),
+            },
+            self.meta(ts),
+        );
+        Ok(())
+    }
+
+    /// The filter after a record, `[t, ess, step_ms, landmarks]`, on `{prefix}/filter`
+    /// (JSON, for Foxglove's Plot panel).
+    pub fn filter(&self, p: [f64; 4]) -> Result<(), McapError> {
+        let ts = stamp(p[0])?;
+        let msg = serde_json::json!({"t": p[0], "ess": p[1], "step_ms": p[2], "landmarks": p[3]});
+        self.filter
+            .log_with_meta(msg.to_string().as_bytes(), self.meta(ts));
+        Ok(())
+    }
+
+    /// Removes the run's channels from the context (a live client sees them go).
+    pub fn close(self) {
+        self.tf.close();
+        self.landmarks.close();
+        self.poses.values().for_each(Channel::close);
+        self.particles.values().for_each(Channel::close);
+        self.filter.close();
+    }
+}
+
+/// What a run's MCAP file holds.
+#[derive(Debug, Clone, Copy)]
+pub struct McapRun<'a> {
+    /// The run's trajectories and landmarks.
+    pub estimate: &'a Truth,
+    /// Its ground truth, when there is one.
+    pub truth: Option<&'a Truth>,
+    /// The filter after each applied record: `[t, ess, step_ms, landmarks]`.
+    pub series: &'a [[f64; 4]],
+    /// A sample of each robot's particles at the end: `[x, y, theta, weight]`.
+    pub particles: &'a BTreeMap<String, Vec<[f64; 4]>>,
+}
+
+impl<'a> McapRun<'a> {
+    /// A run's estimate alone.
+    pub fn estimate(estimate: &'a Truth) -> Self {
+        static NONE: BTreeMap<String, Vec<[f64; 4]>> = BTreeMap::new();
+        Self {
+            estimate,
+            truth: None,
+            series: &[],
+            particles: &NONE,
+        }
+    }
+}
+
+/// The MCAP file of a run (see the module's doc for its topics).
+pub fn write_mcap(run: &McapRun) -> Result<Vec<u8>, McapError> {
+    let McapRun {
+        estimate,
+        truth,
+        series,
+        particles,
+    } = *run;
     let ctx = Context::new();
     let writer = McapWriter::new()
         .context(&ctx)
         .create(Cursor::new(Vec::new()))
         .map_err(|e| McapError::Write(e.to_string()))?;
-    let tf = ctx.channel_builder("/tf").build::<FrameTransform>();
-    poses(&ctx, "robot", &estimate.trajectories, Some(&tf))?;
+    let mut channels = RunChannels::new(&ctx, "", LogTime::Data)?;
+    for (robot, pts) in &estimate.trajectories {
+        for p in pts {
+            channels.pose(robot, p.t, &p.pose)?;
+        }
+    }
     let end = estimate
         .trajectories
         .values()
         .filter_map(|pts| pts.last().map(|p| p.t))
         .fold(0.0, f64::max);
-    let t = stamp(end)?;
-    let estimate_color = Color {
-        r: 0.9,
-        g: 0.4,
-        b: 0.1,
-        a: 0.6,
-    };
-    let scene = ctx.channel_builder("/landmarks").build::<SceneUpdate>();
-    scene.log_with_time(
-        &SceneUpdate {
-            deletions: Vec::new(),
-            entities: estimate
-                .landmarks
-                .iter()
-                .enumerate()
-                .map(|(k, l)| landmark_entity(t, k, l, estimate_color))
-                .collect(),
-        },
-        t,
-    );
+    channels.landmarks(end, &estimate.landmarks)?;
+    for (robot, sample) in particles {
+        channels.particles(robot, end, sample)?;
+    }
+    for p in series {
+        channels.filter(*p)?;
+    }
     if let Some(truth) = truth {
-        poses(&ctx, "truth", &truth.trajectories, None)?;
+        for (robot, pts) in &truth.trajectories {
+            let ch = ctx
+                .channel_builder(format!("/truth/{robot}/pose"))
+                .build::<PoseInFrame>();
+            for p in pts {
+                let t = stamp(p.t)?;
+                ch.log_with_time(
+                    &PoseInFrame {
+                        timestamp: Some(t),
+                        frame_id: WORLD_FRAME.into(),
+                        pose: Some(robot_pose(&p.pose)),
+                    },
+                    t,
+                );
+            }
+        }
         if !truth.landmarks.is_empty() {
+            let t = stamp(end)?;
             let scene = ctx
                 .channel_builder("/truth/landmarks")
                 .build::<SceneUpdate>();

@@ -3,7 +3,7 @@
 
 use fleetslam_core::config::FilterConfig;
 use fleetslam_core::filter::FastSlam;
-use fleetslam_data::mcap::{McapError, write_mcap};
+use fleetslam_data::mcap::{McapError, McapRun, write_mcap};
 use fleetslam_data::run::{TrajectoryEstimate, run_log};
 use fleetslam_data::sim::{SimConfig, simulate};
 use std::collections::BTreeMap;
@@ -23,13 +23,48 @@ fn mcap_export_reads_back_with_every_topic() {
     let mut slam = FastSlam::new(cfg).unwrap();
     let out = run_log(&mut slam, &sim.log, TrajectoryEstimate::Mean, |_, _| {}).unwrap();
     let est = &out.estimate;
-    let bytes = write_mcap(est, Some(&sim.truth)).unwrap();
+    // A filter series (one point per pose of robot 1) and a particle sample per robot.
+    let series: Vec<[f64; 4]> = est.trajectories["1"]
+        .iter()
+        .enumerate()
+        .map(|(k, p)| [p.t, 20.0 - k as f64 * 0.01, 0.5, k as f64])
+        .collect();
+    let particles: BTreeMap<String, Vec<[f64; 4]>> = (0..2)
+        .map(|i| {
+            let id = slam.robots()[i].id.clone();
+            let sample = slam
+                .particle_sample(i, 7)
+                .into_iter()
+                .map(|(p, w)| [p.x, p.y, p.theta, w])
+                .collect();
+            (id, sample)
+        })
+        .collect();
+    let bytes = write_mcap(&McapRun {
+        estimate: est,
+        truth: Some(&sim.truth),
+        series: &series,
+        particles: &particles,
+    })
+    .unwrap();
 
     let mut count: BTreeMap<String, (String, usize)> = BTreeMap::new();
     let (mut first, mut last) = (u64::MAX, 0u64);
+    let mut filter_msgs: Vec<serde_json::Value> = Vec::new();
+    let mut sample_sizes: BTreeMap<String, usize> = BTreeMap::new();
     for m in mcap::MessageStream::new(&bytes).unwrap() {
         let m = m.unwrap();
         let schema = m.channel.schema.as_ref().map(|s| s.name.clone()).unwrap();
+        if m.channel.topic == "/filter" {
+            assert_eq!(m.channel.message_encoding, "json");
+            assert_eq!(m.channel.schema.as_ref().unwrap().encoding, "jsonschema");
+            filter_msgs.push(serde_json::from_slice(&m.data).unwrap());
+        }
+        if schema == "foxglove.PosesInFrame" {
+            let msg =
+                <foxglove::schemas::PosesInFrame as foxglove::Decode>::decode(&m.data[..]).unwrap();
+            sample_sizes.insert(m.channel.topic.clone(), msg.poses.len());
+        }
         count
             .entry(m.channel.topic.clone())
             .or_insert((schema, 0))
@@ -46,12 +81,29 @@ fn mcap_export_reads_back_with_every_topic() {
         ("/truth/1/pose", "foxglove.PoseInFrame", truth_poses("1")),
         ("/truth/2/pose", "foxglove.PoseInFrame", truth_poses("2")),
         ("/landmarks", "foxglove.SceneUpdate", 1),
+        ("/robot/1/particles", "foxglove.PosesInFrame", 1),
+        ("/robot/2/particles", "foxglove.PosesInFrame", 1),
+        ("/filter", "fleetslam.FilterStats", series.len()),
         ("/truth/landmarks", "foxglove.SceneUpdate", 1),
     ]
     .into_iter()
     .map(|(t, s, n)| (t.to_string(), (s.to_string(), n)))
     .collect();
     assert_eq!(count, want);
+    // Each sample arrives whole; each filter point as its fields, in order.
+    for (i, r) in ["1", "2"].iter().enumerate() {
+        assert_eq!(
+            sample_sizes[&format!("/robot/{r}/particles")],
+            particles[slam.robots()[i].id.as_str()].len()
+        );
+    }
+    assert!(particles.values().all(|s| s.len() == 7));
+    for (m, p) in filter_msgs.iter().zip(&series) {
+        assert_eq!(
+            [&m["t"], &m["ess"], &m["step_ms"], &m["landmarks"]].map(|v| v.as_f64().unwrap()),
+            *p
+        );
+    }
     // The time range is the run's: its first pose to its last (estimate or truth), in ns.
     let times: Vec<f64> = est
         .trajectories
@@ -69,5 +121,8 @@ fn mcap_export_reads_back_with_every_topic() {
     // A run whose times are negative cannot be written, and says so.
     let mut bad = est.clone();
     bad.trajectories.get_mut("1").unwrap()[0].t = -1.0;
-    assert!(matches!(write_mcap(&bad, None), Err(McapError::Time(t)) if t == -1.0));
+    assert!(matches!(
+        write_mcap(&McapRun::estimate(&bad)),
+        Err(McapError::Time(t)) if t == -1.0
+    ));
 }

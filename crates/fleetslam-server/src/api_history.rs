@@ -18,7 +18,7 @@ use fleetslam_data::formats::{write_landmarks_csv, write_tum};
 use fleetslam_store::{NewRobot, NewRun, RunRow, Store};
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::io::Write;
 use std::sync::Arc;
 
@@ -264,16 +264,112 @@ pub async fn timeline(
     })))
 }
 
-/// `GET /v1/runs/{run}/trajectories`
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SinceQuery {
+    /// Data time [s]: only points after it (what a reader that has the points up to it
+    /// lacks).
+    since: Option<f64>,
+    /// At most this many points per track, evenly thinned (the last point always kept).
+    max_points: Option<usize>,
+}
+
+impl SinceQuery {
+    fn check(&self) -> Result<(), ApiError> {
+        if self.since.is_some_and(|t| !t.is_finite()) {
+            return Err(ApiError::BadRequest(format!(
+                "since must be a finite time in seconds, got {:?}",
+                self.since
+            )));
+        }
+        if self.max_points == Some(0) {
+            return Err(ApiError::BadRequest("max_points must be at least 1".into()));
+        }
+        Ok(())
+    }
+
+    /// `pts` after `since`, thinned to `max_points`.
+    fn select(&self, pts: &[[f64; 4]]) -> Vec<[f64; 4]> {
+        let from = self.since.map_or(0, |s| pts.partition_point(|p| p[0] <= s));
+        thin(&pts[from..], self.max_points)
+    }
+}
+
+/// Every `ceil(n / max)`-th point of `pts` and the last one: at most `max` points spread
+/// evenly over the span, ending where `pts` ends.
+fn thin(pts: &[[f64; 4]], max: Option<usize>) -> Vec<[f64; 4]> {
+    match max {
+        Some(max) if pts.len() > max => {
+            let step = pts.len().div_ceil(max);
+            let last = pts.len() - 1;
+            // Counted from the end, so that the last point is one of them.
+            let mut out: Vec<[f64; 4]> = (0..max)
+                .filter_map(|k| last.checked_sub(k * step).map(|i| pts[i]))
+                .collect();
+            out.reverse();
+            out
+        }
+        _ => pts.to_vec(),
+    }
+}
+
+/// `GET /v1/runs/{run}/trajectories[?since=T&max_points=N]`
 #[utoipa::path(get, path = "/v1/runs/{run}/trajectories", tag = "runs",
-    params(("run" = String, Path, description = "Run id")),
+    params(("run" = String, Path, description = "Run id"),
+           ("since" = Option<f64>, Query, description = "Data time [s]: only the points after it, for a reader that has those up to it"),
+           ("max_points" = Option<usize>, Query, description = "At most this many points per robot, evenly thinned, the last one kept")),
     responses((status = 200, description = "{\"robots\": {id: [[t, x, y, theta], ...]}}: the mean pose after each record")))]
 pub async fn trajectories(
     State(state): State<AppState>,
     Path(run): Path<String>,
+    Query(q): Query<SinceQuery>,
 ) -> Result<Json<Value>, ApiError> {
+    q.check()?;
     let v = view(&state, &run).await?;
-    Ok(Json(json!({ "robots": &*v.trajectories })))
+    if q.since.is_none() && q.max_points.is_none() {
+        return Ok(Json(json!({ "robots": &*v.trajectories })));
+    }
+    let robots: BTreeMap<&String, Vec<[f64; 4]>> = v
+        .trajectories
+        .iter()
+        .map(|(r, pts)| (r, q.select(pts)))
+        .collect();
+    Ok(Json(json!({ "robots": robots })))
+}
+
+/// The filter's series of a run: published beside a live run's state, read from the store
+/// for any other (as far as its last stored snapshot).
+async fn filter_series(
+    state: &AppState,
+    run: &str,
+) -> Result<Vec<crate::track::FilterPoint>, ApiError> {
+    match state.running(run).await {
+        Some(live) => Ok(live.handle.filter_series()),
+        None => {
+            run_row(&state.store, run).await?;
+            history::stored_series(&state.store, run).await
+        }
+    }
+}
+
+/// `GET /v1/runs/{run}/series[?since=T&max_points=N]`: the filter after each applied record.
+#[utoipa::path(get, path = "/v1/runs/{run}/series", tag = "runs",
+    params(("run" = String, Path, description = "Run id"),
+           ("since" = Option<f64>, Query, description = "Data time [s]: only the points after it"),
+           ("max_points" = Option<usize>, Query, description = "At most this many points, evenly thinned, the last one kept")),
+    responses((status = 200, description = "{\"columns\": [\"t\", \"ess\", \"step_ms\", \"landmarks\"], \"points\": [[...], ...]}: after each applied record, its data time [s], the effective sample size, the record's step time [ms] and the landmarks of the best particle"),
+              (status = 404, description = "No such run", body = crate::error::ErrorBody)))]
+pub async fn series(
+    State(state): State<AppState>,
+    Path(run): Path<String>,
+    Query(q): Query<SinceQuery>,
+) -> Result<Json<Value>, ApiError> {
+    q.check()?;
+    let pts = filter_series(&state, &run).await?;
+    Ok(Json(json!({
+        "columns": ["t", "ess", "step_ms", "landmarks"],
+        "points": q.select(&pts),
+    })))
 }
 
 /// `PUT /v1/runs/{run}/truth` (admin): the run's ground truth, for overlays and evaluation.
@@ -426,7 +522,7 @@ async fn export_log(store: &Store, row: &RunRow) -> Result<Vec<u8>, ApiError> {
 /// `GET /v1/runs/{run}/export[?format=zip|log|landmarks|metrics|tum|mcap&robot=ID]`
 #[utoipa::path(get, path = "/v1/runs/{run}/export", tag = "runs",
     params(("run" = String, Path, description = "Run id"),
-           ("format" = Option<String>, Query, description = "zip (default), log, landmarks, metrics, tum, mcap (Foxglove schemas: poses, frame transforms, landmarks with 2-sigma ellipses, ground truth when uploaded)"),
+           ("format" = Option<String>, Query, description = "zip (default), log, landmarks, metrics, tum, mcap (Foxglove schemas: poses, frame transforms, landmarks with 2-sigma ellipses, the final particle sample, ESS, step time and landmark count after each record, ground truth when uploaded)"),
            ("robot" = Option<String>, Query, description = "The robot, for format=tum")),
     responses((status = 200, description = "A zip of trajectory_<robot>.tum, landmarks.csv, metrics.json and log.ndjson (the files `fleetslam run` writes, and the log it reads), or one of them")))]
 pub async fn export(
@@ -501,8 +597,18 @@ pub async fn export(
                 ),
                 None => None,
             };
+            let series = filter_series(&state, &run).await?;
+            let particles: BTreeMap<String, Vec<[f64; 4]>> = serde_json::from_value(
+                v.state.get("particle_sample").cloned().unwrap_or(json!({})),
+            )
+            .map_err(ApiError::internal)?;
             let mcap = tokio::task::spawn_blocking(move || {
-                fleetslam_data::mcap::write_mcap(&est, truth.as_ref())
+                fleetslam_data::mcap::write_mcap(&fleetslam_data::mcap::McapRun {
+                    estimate: &est,
+                    truth: truth.as_ref(),
+                    series: &series,
+                    particles: &particles,
+                })
             })
             .await
             .map_err(ApiError::internal)?
@@ -739,4 +845,25 @@ pub async fn delete_run(
 pub async fn list_models(State(state): State<AppState>) -> Result<Json<Value>, ApiError> {
     let models = state.store.list_models().await?;
     Ok(Json(json!({ "models": models })))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pts(n: usize) -> Vec<[f64; 4]> {
+        (0..n).map(|i| [i as f64, 0.0, 0.0, 0.0]).collect()
+    }
+
+    /// Thinning keeps at most the number asked for, evenly spaced, the last point always.
+    #[test]
+    fn thinning_keeps_evenly_spaced_points_and_the_last() {
+        assert_eq!(thin(&pts(5), Some(10)), pts(5));
+        assert_eq!(thin(&pts(5), None), pts(5));
+        let t = |v: Vec<[f64; 4]>| v.iter().map(|p| p[0] as usize).collect::<Vec<_>>();
+        assert_eq!(t(thin(&pts(10), Some(5))), vec![1, 3, 5, 7, 9]);
+        assert_eq!(t(thin(&pts(10), Some(4))), vec![0, 3, 6, 9]);
+        assert_eq!(t(thin(&pts(1000), Some(3))), vec![331, 665, 999]);
+        assert_eq!(t(thin(&pts(7), Some(1))), vec![6]);
+    }
 }

@@ -82,6 +82,9 @@ pub struct AppState {
     /// Set in cluster mode ([`crate::cluster`]): records go through JetStream and runs are
     /// owned by lease.
     pub cluster: Option<Arc<crate::cluster::Cluster>>,
+    /// Set with `foxglove_bind`: live runs are also streamed to Foxglove
+    /// ([`crate::foxglove_live`]).
+    pub foxglove: Option<Arc<crate::foxglove_live::FoxgloveLive>>,
 }
 
 impl AppState {
@@ -94,7 +97,14 @@ impl AppState {
             creating: Arc::default(),
             ws: Arc::default(),
             cluster: None,
+            foxglove: None,
         }
+    }
+
+    /// The same state, streaming its live runs to Foxglove too.
+    pub fn with_foxglove(mut self, foxglove: Arc<crate::foxglove_live::FoxgloveLive>) -> Self {
+        self.foxglove = Some(foxglove);
+        self
     }
 
     /// The same state as a replica of a cluster.
@@ -127,6 +137,9 @@ impl AppState {
             training,
             clock,
         );
+        if let Some(f) = &self.foxglove {
+            f.watch(&handle, self.config.coordinator.state_rate_hz);
+        }
         let live = Arc::new(LiveRun {
             handle,
             config,
@@ -167,6 +180,7 @@ pub fn app(state: AppState) -> Router {
         .route("/v1/runs/{run}/state", get(api_history::get_state))
         .route("/v1/runs/{run}/live", get(live))
         .route("/v1/runs/{run}/timeline", get(api_history::timeline))
+        .route("/v1/runs/{run}/series", get(api_history::series))
         .route(
             "/v1/runs/{run}/trajectories",
             get(api_history::trajectories),
@@ -823,45 +837,77 @@ fn check_records(
     Ok(records)
 }
 
-/// `GET /v1/runs/{run}/live` (websocket): states and events.
+#[derive(Debug, Deserialize)]
+pub(crate) struct LiveQuery {
+    /// `full` (default): every state carries every landmark; `delta`: compact states with
+    /// the landmarks that changed ([`crate::compact`]).
+    landmarks: Option<String>,
+}
+
+/// `GET /v1/runs/{run}/live[?landmarks=full|delta]` (websocket): states and events.
 #[utoipa::path(get, path = "/v1/runs/{run}/live", tag = "runs",
-    params(("run" = String, Path, description = "Run id")),
-    responses((status = 101, description = "Websocket: {\"type\": \"state\"|\"event\"|\"lagged\", ...}")))]
+    params(("run" = String, Path, description = "Run id"),
+           ("landmarks" = Option<String>, Query, description = "full (default): every state carries every landmark; delta: states carry the landmarks that changed since the connection's previous state (see the compact module)")),
+    responses((status = 101, description = "Websocket: {\"type\": \"state\"|\"event\"|\"lagged\"|\"heartbeat\", ...}")))]
 pub(crate) async fn live(
     State(state): State<AppState>,
     Path(run): Path<String>,
+    Query(q): Query<LiveQuery>,
     ws: WebSocketUpgrade,
     permit: crate::ws_limit::WsPermit,
 ) -> Result<Response, ApiError> {
+    let delta = match q.landmarks.as_deref() {
+        None | Some("full") => false,
+        Some("delta") => true,
+        Some(other) => {
+            return Err(ApiError::BadRequest(format!(
+                "landmarks must be full or delta, got {other:?}"
+            )));
+        }
+    };
     if let Some(cluster) = &state.cluster
         && state.running(&run).await.is_none()
     {
         // Owned by another replica: its states and events, relayed.
         ClusterRun::load(&state, &run).await?;
         let (states, events) = cluster.subscribe_live(&run).await?;
+        let heartbeat = state.config.coordinator.ws_heartbeat;
         return Ok(ws.on_upgrade(move |socket| async move {
             let _slot = permit;
-            relay_run(socket, states, events).await
+            relay_run(socket, states, events, heartbeat).await
         }));
     }
     let live = state.live(&run).await?;
     let rate = state.config.coordinator.state_rate_hz;
+    let heartbeat = state.config.coordinator.ws_heartbeat;
     Ok(ws.on_upgrade(move |socket| async move {
         let _slot = permit; // held for as long as the connection lives
-        stream_run(socket, live.handle.clone(), rate).await
+        stream_run(socket, live.handle.clone(), rate, heartbeat, delta).await
     }))
 }
 
 /// Streams `{"type":"state",...}` at most `rate` times a second (always the newest state: a
 /// slow client skips states, never queues them) and `{"type":"event",...}` as they happen; a
-/// client too slow for the events gets a `lagged` notice and a fresh full state.
-async fn stream_run(mut socket: WebSocket, handle: RunHandle, rate: f64) {
+/// client too slow for the events gets a `lagged` notice and a fresh full state; a heartbeat
+/// keeps an idle connection known to be alive ([`crate::ws_limit::Heartbeat`]). With
+/// `delta`, states are compact ([`crate::compact`]).
+async fn stream_run(
+    mut socket: WebSocket,
+    handle: RunHandle,
+    rate: f64,
+    heartbeat: std::time::Duration,
+    delta: bool,
+) {
+    let mut hb = crate::ws_limit::Heartbeat::new(heartbeat);
     let mut state_rx = handle.state.clone();
     let mut events = handle.events.subscribe();
     let period = std::time::Duration::from_secs_f64(1.0 / rate.max(0.1));
+    let mut compact = delta.then(crate::compact::LandmarkDelta::new);
     // Built (once per publication, for every listener) and serialized only here.
-    let send_state =
-        |s: &PublishedState| serde_json::json!({ "type": "state", "state": &*s.get() }).to_string();
+    let mut send_state = |s: &PublishedState| match &mut compact {
+        Some(c) => c.message(&s.get()),
+        None => serde_json::json!({ "type": "state", "state": &*s.get() }).to_string(),
+    };
     // The state last sent: a newer one is sent at the next tick, also the final one that a
     // run publishes as its coordinator stops (a closed channel reports no change).
     let mut sent = state_rx.borrow_and_update().clone();
@@ -893,12 +939,33 @@ async fn stream_run(mut socket: WebSocket, handle: RunHandle, rate: f64) {
                 };
                 if socket.send(Message::Text(text.into())).await.is_err() { return; }
             }
+            () = hb.beat() => {
+                if !beat(&mut socket, &hb).await { return; }
+            }
             msg = socket.recv() => match msg {
                 Some(Ok(Message::Close(_))) | None | Some(Err(_)) => return,
-                _ => {}
+                _ => hb.heard(),
             },
         }
     }
+}
+
+/// One heartbeat on a live connection: false when the connection is to be dropped (the
+/// client has been silent too long, or the send failed).
+async fn beat(socket: &mut WebSocket, hb: &crate::ws_limit::Heartbeat) -> bool {
+    if hb.dead() {
+        tracing::debug!("closing a live connection whose client stopped answering");
+        let _ = socket.send(Message::Close(None)).await;
+        return false;
+    }
+    socket
+        .send(Message::Ping(axum::body::Bytes::new()))
+        .await
+        .is_ok()
+        && socket
+            .send(Message::Text(hb.message().into()))
+            .await
+            .is_ok()
 }
 
 /// What a cluster replica needs to know of a run to check requests for it: read from the
@@ -1034,15 +1101,24 @@ async fn relay_run(
     mut socket: WebSocket,
     mut states: async_nats::Subscriber,
     mut events: async_nats::Subscriber,
+    heartbeat: std::time::Duration,
 ) {
     use futures::StreamExt;
+    let mut hb = crate::ws_limit::Heartbeat::new(heartbeat);
     loop {
         let msg = tokio::select! {
             m = states.next() => m,
             m = events.next() => m,
+            () = hb.beat() => {
+                if !beat(&mut socket, &hb).await { return; }
+                continue;
+            }
             msg = socket.recv() => match msg {
                 Some(Ok(Message::Close(_))) | None | Some(Err(_)) => return,
-                _ => continue,
+                _ => {
+                    hb.heard();
+                    continue;
+                }
             },
         };
         let Some(m) = msg else { return };

@@ -3,7 +3,7 @@
 //! | access  | endpoints | needs |
 //! |---|---|---|
 //! | public  | `/healthz`, `/v1/openapi.json`, the dashboard's files | nothing |
-//! | read    | runs, state, live, timeline, trajectories, truth, evaluation, export, models, `/metrics` | the read or admin token when reads are protected (`read_access`: by default when the server is not on a loopback address) |
+//! | read    | runs, state, live, timeline, series, trajectories, truth, evaluation, export, models, `/metrics` | the read or admin token when reads are protected (`read_access`: by default when the server is not on a loopback address) |
 //! | admin   | create, end, delete and re-run runs, upload truth | the admin token, when one is configured |
 //! | enroll  | register a robot | the admin token or the run's enrollment token (created with the run), when an admin token is configured |
 //! | robot   | post records | the robot's own token (from its registration); records of other robots are refused |
@@ -107,6 +107,7 @@ pub fn policy(method: &Method, route: &str) -> Option<Option<Access>> {
         "/v1/runs/{run}/state"
         | "/v1/runs/{run}/live"
         | "/v1/runs/{run}/timeline"
+        | "/v1/runs/{run}/series"
         | "/v1/runs/{run}/trajectories"
         | "/v1/runs/{run}/evaluation"
         | "/v1/runs/{run}/export" => m(Some(Read), None, None, None),

@@ -1,5 +1,6 @@
-//! Server configuration: defaults, then a TOML file, then `FLEETSLAM_*` environment
-//! variables, then command-line flags. Unknown keys in the file are an error.
+//! Server configuration: defaults, then a TOML file, then `FLEETSLAM_<FIELD>` environment
+//! variables, then command-line flags, layered with figment ([`ServerConfig::load`]; the
+//! variables read follow the struct's fields). Unknown keys in the file are an error.
 //! `fleetslam.example.toml` at the repository root is a commented example.
 
 use crate::app::ApiConfig;
@@ -33,8 +34,10 @@ pub struct ServerConfig {
     /// authenticates).
     pub read_access: ReadAccess,
     /// Origins (`scheme://host:port`) whose web pages may change state or open the live
-    /// websocket, besides the server's own loopback origins. Requests without an `Origin`
+    /// websocket, besides the server's own loopback origins (in `FLEETSLAM_ALLOWED_ORIGINS`,
+    /// comma-separated). Requests without an `Origin`
     /// header (robots, scripts) are not affected.
+    #[serde(deserialize_with = "comma_list")]
     pub allowed_origins: Vec<String>,
     /// Largest request body [bytes]. Default 16 MiB.
     pub body_limit_bytes: usize,
@@ -79,6 +82,16 @@ pub struct ServerConfig {
     pub ws_max_per_run: usize,
     /// Websocket clients of all runs together; one more gets a JSON 503. Default 256.
     pub ws_max_total: usize,
+    /// Period of a live websocket's heartbeat [ms]: the server pings the client and sends a
+    /// `{"type":"heartbeat"}` message, closes a connection whose client answered nothing
+    /// for three periods, and the dashboard treats one silent for three periods as lost.
+    /// Default 5000.
+    pub ws_heartbeat_ms: u64,
+    /// Also serve live runs to Foxglove over its WebSocket protocol on this address
+    /// (`host:port`, e.g. `127.0.0.1:8765`; [`crate::foxglove_live`]). Default none. The
+    /// protocol has no authentication: a non-loopback address needs `read_access = "open"`
+    /// (behind a proxy that authenticates).
+    pub foxglove_bind: Option<String>,
     /// Run as one replica of a cluster ([`crate::cluster`]): records go through NATS
     /// JetStream (`nats_url`), runs are owned by lease, the store must be PostgreSQL
     /// (`database_url`), shared by every replica. Default false.
@@ -93,6 +106,25 @@ pub struct ServerConfig {
     /// How long a run's lease lasts unless its owner renews it [ms]: the longest a killed
     /// owner's runs wait for another replica. Default 3000.
     pub lease_ttl_ms: u64,
+}
+
+/// A list of strings, or (as an environment variable gives it) one comma-separated string.
+fn comma_list<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Vec<String>, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum List {
+        One(String),
+        Many(Vec<String>),
+    }
+    Ok(match List::deserialize(d)? {
+        List::One(s) => s
+            .split(',')
+            .map(str::trim)
+            .filter(|o| !o.is_empty())
+            .map(str::to_string)
+            .collect(),
+        List::Many(v) => v,
+    })
 }
 
 impl Default for ServerConfig {
@@ -123,6 +155,8 @@ impl Default for ServerConfig {
             max_name_bytes: Limits::default().max_name_bytes,
             ws_max_per_run: crate::ws_limit::DEFAULT_WS_MAX_PER_RUN,
             ws_max_total: crate::ws_limit::DEFAULT_WS_MAX_TOTAL,
+            ws_heartbeat_ms: crate::ws_limit::DEFAULT_WS_HEARTBEAT.as_millis() as u64,
+            foxglove_bind: None,
             cluster: false,
             nats_url: None,
             replica_id: None,
@@ -132,94 +166,75 @@ impl Default for ServerConfig {
     }
 }
 
-/// The environment variables read, each overriding the field of the same name.
-pub const ENV_KEYS: [&str; 30] = [
-    "bind",
-    "data_dir",
-    "database_url",
-    "admin_token",
-    "read_token",
-    "read_access",
-    "allowed_origins",
-    "body_limit_bytes",
-    "queue_capacity",
-    "reorder_window_ms",
-    "state_rate_hz",
-    "particle_sample",
-    "snapshot_every",
-    "web_dir",
-    "max_future_s",
-    "max_motion_s",
-    "max_motion_segments",
-    "max_records_per_request",
-    "max_landmarks_per_record",
-    "max_sightings_per_record",
-    "max_robots_per_run",
-    "max_active_runs",
-    "max_name_bytes",
-    "ws_max_per_run",
-    "ws_max_total",
-    "cluster",
-    "nats_url",
-    "replica_id",
-    "stream_replicas",
-    "lease_ttl_ms",
-];
+/// The prefix of the environment variables: `FLEETSLAM_<FIELD>` sets a field.
+pub const ENV_PREFIX: &str = "FLEETSLAM_";
+
+/// `FLEETSLAM_<FIELD>` variables for the fields of [`ServerConfig`], kept as the strings
+/// they are: figment's own `Env` provider reads a token of digits as a number and drops its
+/// leading zeros. The lossy extraction of [`ServerConfig::load`] makes numbers and booleans
+/// of the variables of number and boolean fields. An empty variable is unset (compose files
+/// pass `${VAR:-}` through).
+struct EnvStrings(figment::providers::Env);
+
+impl EnvStrings {
+    fn new() -> Self {
+        // The fields, from the defaults: the variables read follow the struct by themselves.
+        let fields: Vec<String> = match serde_json::to_value(ServerConfig::default()) {
+            Ok(serde_json::Value::Object(m)) => m.keys().cloned().collect(),
+            _ => Vec::new(),
+        };
+        Self(
+            figment::providers::Env::prefixed(ENV_PREFIX)
+                .filter(move |k| fields.iter().any(|f| k == f.as_str())),
+        )
+    }
+}
+
+impl figment::Provider for EnvStrings {
+    fn metadata(&self) -> figment::Metadata {
+        figment::Metadata::named("environment variable").interpolater(
+            |_: &figment::Profile, k: &[&str]| {
+                format!("{ENV_PREFIX}{}", k.join(".").to_ascii_uppercase())
+            },
+        )
+    }
+
+    fn data(
+        &self,
+    ) -> Result<figment::value::Map<figment::Profile, figment::value::Dict>, figment::Error> {
+        let dict = self
+            .0
+            .iter()
+            .filter(|(_, v)| !v.is_empty())
+            .map(|(k, v)| (k.to_string(), figment::value::Value::from(v)))
+            .collect();
+        Ok(figment::Profile::Default.collect(dict))
+    }
+}
 
 impl ServerConfig {
-    /// Defaults, then `file` (TOML), then `FLEETSLAM_<FIELD>` variables from `env`.
-    pub fn load(
-        file: Option<&std::path::Path>,
-        env: impl Fn(&str) -> Option<String>,
-    ) -> Result<Self, String> {
-        let mut v = serde_json::to_value(Self::default()).map_err(|e| e.to_string())?;
+    /// The layers, each over the one before: the defaults, the TOML `file`, the
+    /// `FLEETSLAM_<FIELD>` environment variables, then `flags` (the fields a command line
+    /// gave: any serializable struct or map whose absent fields leave the layers below).
+    /// Unknown keys are an error, and an error names the layer and field.
+    pub fn load(file: Option<&std::path::Path>, flags: impl Serialize) -> Result<Self, String> {
+        use figment::providers::{Format, Serialized, Toml};
+        let mut fig = figment::Figment::from(Serialized::defaults(Self::default()));
         if let Some(path) = file {
-            let text = std::fs::read_to_string(path)
-                .map_err(|e| format!("reading {}: {e}", path.display()))?;
-            let t: toml::Value =
-                toml::from_str(&text).map_err(|e| format!("parsing {}: {e}", path.display()))?;
-            let patch = serde_json::to_value(t).map_err(|e| e.to_string())?;
-            let serde_json::Value::Object(p) = patch else {
-                return Err(format!("{}: expected a table", path.display()));
-            };
-            for (k, val) in p {
-                v[k] = val;
+            if !path.is_file() {
+                return Err(format!("reading {}: no such file", path.display()));
             }
-            // Unknown keys are reported by the typed parse below.
+            fig = fig.merge(Toml::file_exact(path));
         }
-        for key in ENV_KEYS {
-            let name = format!("FLEETSLAM_{}", key.to_uppercase());
-            // An empty variable is unset (compose files pass `${VAR:-}` through).
-            if let Some(raw) = env(&name).filter(|v| !v.is_empty()) {
-                let is_string = matches!(
-                    key,
-                    "bind"
-                        | "data_dir"
-                        | "database_url"
-                        | "admin_token"
-                        | "read_token"
-                        | "read_access"
-                        | "web_dir"
-                        | "nats_url"
-                        | "replica_id"
-                );
-                v[key] = if is_string {
-                    serde_json::Value::String(raw)
-                } else if key == "allowed_origins" {
-                    // A comma-separated list.
-                    raw.split(',')
-                        .map(str::trim)
-                        .filter(|o| !o.is_empty())
-                        .map(|o| serde_json::Value::String(o.to_string()))
-                        .collect()
-                } else {
-                    serde_json::from_str(&raw)
-                        .map_err(|_| format!("{name}={raw:?} is not a number or boolean"))?
-                };
-            }
-        }
-        serde_path_to_error::deserialize(v)
-            .map_err(|e| format!("configuration: field `{}`: {}", e.path(), e.inner()))
+        fig.merge(EnvStrings::new())
+            .merge(Serialized::defaults(flags))
+            .extract_lossy()
+            .map_err(|e| {
+                e.into_iter()
+                    .map(|e| format!("configuration: {e}"))
+                    .collect::<Vec<_>>()
+                    .join("; ")
+            })
     }
 
     pub fn validate(&self) -> Result<(), String> {
@@ -266,6 +281,12 @@ impl ServerConfig {
         if self.ws_max_per_run == 0 || self.ws_max_total == 0 {
             return Err("ws_max_per_run and ws_max_total must be at least 1".into());
         }
+        if self.ws_heartbeat_ms < 50 {
+            return Err(format!(
+                "ws_heartbeat_ms must be at least 50, got {}",
+                self.ws_heartbeat_ms
+            ));
+        }
         if self.body_limit_bytes < 1024 {
             return Err(format!(
                 "body_limit_bytes must be at least 1024, got {}",
@@ -288,8 +309,31 @@ impl ServerConfig {
         for o in &self.allowed_origins {
             crate::auth::parse_origin(o).map_err(|e| format!("allowed_origins: {e}"))?;
         }
+        if let Some(addr) = self.foxglove_addr()? {
+            let ip = addr.ip();
+            if !ip.is_loopback() && self.read_access != ReadAccess::Open {
+                return Err(format!(
+                    "refusing to serve Foxglove on {addr}: the Foxglove WebSocket protocol \
+                     has no authentication, so anyone who reaches it reads every live run; \
+                     bind a loopback address (and tunnel to it), or set read_access = \
+                     \"open\" behind a proxy that authenticates"
+                ));
+            }
+        }
         self.limits().validate()?;
         Ok(())
+    }
+
+    /// The Foxglove server's address, when one is set.
+    pub fn foxglove_addr(&self) -> Result<Option<std::net::SocketAddr>, String> {
+        self.foxglove_bind
+            .as_deref()
+            .map(|b| {
+                b.parse().map_err(|_| {
+                    format!("foxglove_bind must be host:port with an IP host (127.0.0.1:8765), got {b:?}")
+                })
+            })
+            .transpose()
     }
 
     /// Refuses to serve a non-loopback address without an admin token: anyone on the network
@@ -369,6 +413,7 @@ impl ServerConfig {
                 max_future_s: self.max_future_s,
                 ws_max_per_run: self.ws_max_per_run,
                 ws_max_total: self.ws_max_total,
+                ws_heartbeat: Duration::from_millis(self.ws_heartbeat_ms),
             },
         }
     }
@@ -378,77 +423,97 @@ impl ServerConfig {
 mod tests {
     use super::*;
 
-    #[test]
-    fn layers_file_then_env() {
-        let dir = tempfile::tempdir().unwrap();
-        let f = dir.path().join("c.toml");
-        std::fs::write(&f, "bind = \"0.0.0.0:9000\"\nqueue_capacity = 8\n").unwrap();
-        let env = |k: &str| (k == "FLEETSLAM_QUEUE_CAPACITY").then(|| "16".to_string());
-        let c = ServerConfig::load(Some(&f), env).unwrap();
-        assert_eq!(c.bind, "0.0.0.0:9000");
-        assert_eq!(c.queue_capacity, 16);
-        assert_eq!(c.state_rate_hz, 10.0);
-        let c =
-            ServerConfig::load(None, |k| (k == "FLEETSLAM_ADMIN_TOKEN").then(String::new)).unwrap();
-        assert_eq!(c.admin_token, None, "an empty variable is unset");
+    use figment::Jail;
+
+    /// No flags.
+    fn none() -> serde_json::Value {
+        serde_json::json!({})
     }
 
     #[test]
+    #[allow(clippy::result_large_err)] // figment's Jail takes closures returning its error
+    fn layers_defaults_file_env_then_flags() {
+        Jail::expect_with(|jail| {
+            jail.create_file(
+                "c.toml",
+                "bind = \"0.0.0.0:9000\"\nqueue_capacity = 8\nstate_rate_hz = 4.0\n",
+            )?;
+            jail.set_env("FLEETSLAM_QUEUE_CAPACITY", "16");
+            jail.set_env("FLEETSLAM_STATE_RATE_HZ", "5");
+            // A token of digits stays the string it is (leading zero and all).
+            jail.set_env("FLEETSLAM_ADMIN_TOKEN", "0123456789012345678");
+            jail.set_env("FLEETSLAM_ALLOWED_ORIGINS", "http://a:1, http://b:2");
+            jail.set_env("FLEETSLAM_CLUSTER", "true");
+            // Not a field: ignored (the tests' own variables share the prefix).
+            jail.set_env("FLEETSLAM_REQUIRE_DATA", "1");
+            let path = jail.directory().join("c.toml");
+            let c =
+                ServerConfig::load(Some(&path), serde_json::json!({"state_rate_hz": 7.5})).unwrap();
+            assert_eq!(c.bind, "0.0.0.0:9000");
+            assert_eq!(c.queue_capacity, 16);
+            assert_eq!(c.state_rate_hz, 7.5);
+            assert_eq!(c.admin_token.as_deref(), Some("0123456789012345678"));
+            assert_eq!(c.allowed_origins, ["http://a:1", "http://b:2"]);
+            assert!(c.cluster);
+            assert_eq!(c.snapshot_every, ServerConfig::default().snapshot_every);
+            // An empty variable is unset.
+            jail.set_env("FLEETSLAM_ADMIN_TOKEN", "");
+            let c = ServerConfig::load(None, none()).unwrap();
+            assert_eq!(c.admin_token, None);
+            assert_eq!(c.state_rate_hz, 5.0);
+            Ok(())
+        });
+    }
+
+    #[test]
+    #[allow(clippy::result_large_err)] // figment's Jail takes closures returning its error
     fn unknown_keys_and_bad_values_are_errors() {
-        let dir = tempfile::tempdir().unwrap();
-        let f = dir.path().join("c.toml");
-        std::fs::write(&f, "colour = 1\n").unwrap();
-        let e = ServerConfig::load(Some(&f), |_| None).unwrap_err();
-        assert!(e.contains("colour"), "{e}");
-        let e = ServerConfig::load(None, |k| {
-            (k == "FLEETSLAM_STATE_RATE_HZ").then(|| "fast".into())
-        })
-        .unwrap_err();
-        assert!(e.contains("FLEETSLAM_STATE_RATE_HZ"), "{e}");
+        Jail::expect_with(|jail| {
+            jail.create_file("c.toml", "colour = 1\n")?;
+            let path = jail.directory().join("c.toml");
+            let e = ServerConfig::load(Some(&path), none()).unwrap_err();
+            assert!(e.contains("colour") && e.contains("c.toml"), "{e}");
+            let e =
+                ServerConfig::load(Some(&jail.directory().join("none.toml")), none()).unwrap_err();
+            assert!(e.contains("none.toml"), "{e}");
+            jail.set_env("FLEETSLAM_STATE_RATE_HZ", "fast");
+            let e = ServerConfig::load(None, none()).unwrap_err();
+            assert!(
+                e.contains("FLEETSLAM_STATE_RATE_HZ") && e.contains("fast"),
+                "{e}"
+            );
+            Ok(())
+        });
     }
 
     #[test]
+    #[allow(clippy::result_large_err)] // figment's Jail takes closures returning its error
     fn cluster_mode_needs_nats_and_a_shared_postgres() {
-        let env = |vars: &'static [(&'static str, &'static str)]| {
-            move |k: &str| {
-                vars.iter()
-                    .find(|(n, _)| *n == k)
-                    .map(|(_, v)| v.to_string())
-            }
-        };
-        let c = ServerConfig::load(None, env(&[("FLEETSLAM_CLUSTER", "true")])).unwrap();
-        assert!(c.validate().unwrap_err().contains("nats_url"));
-        let c = ServerConfig::load(
-            None,
-            env(&[
-                ("FLEETSLAM_CLUSTER", "true"),
-                ("FLEETSLAM_NATS_URL", "nats://a:4222"),
-            ]),
-        )
-        .unwrap();
-        assert!(c.validate().unwrap_err().contains("PostgreSQL"));
-        let c = ServerConfig::load(
-            None,
-            env(&[
-                ("FLEETSLAM_CLUSTER", "true"),
-                ("FLEETSLAM_NATS_URL", "nats://a:4222, nats://b:4222"),
-                ("FLEETSLAM_DATABASE_URL", "postgres://db/fleetslam"),
-                ("FLEETSLAM_REPLICA_ID", "r7"),
-            ]),
-        )
-        .unwrap();
-        c.validate().unwrap();
-        let cc = c.cluster().unwrap();
-        assert_eq!(cc.nats_urls, ["nats://a:4222", "nats://b:4222"]);
-        assert_eq!(cc.replica_id, "r7");
-        assert!(ServerConfig::default().cluster().is_none());
+        Jail::expect_with(|jail| {
+            jail.set_env("FLEETSLAM_CLUSTER", "true");
+            let c = ServerConfig::load(None, none()).unwrap();
+            assert!(c.validate().unwrap_err().contains("nats_url"));
+            jail.set_env("FLEETSLAM_NATS_URL", "nats://a:4222");
+            let c = ServerConfig::load(None, none()).unwrap();
+            assert!(c.validate().unwrap_err().contains("PostgreSQL"));
+            jail.set_env("FLEETSLAM_NATS_URL", "nats://a:4222, nats://b:4222");
+            jail.set_env("FLEETSLAM_DATABASE_URL", "postgres://db/fleetslam");
+            jail.set_env("FLEETSLAM_REPLICA_ID", "7");
+            let c = ServerConfig::load(None, none()).unwrap();
+            c.validate().unwrap();
+            let cc = c.cluster().unwrap();
+            assert_eq!(cc.nats_urls, ["nats://a:4222", "nats://b:4222"]);
+            assert_eq!(cc.replica_id, "7");
+            assert!(ServerConfig::default().cluster().is_none());
+            Ok(())
+        });
     }
 
     #[test]
     fn example_config_parses() {
         let path =
             std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fleetslam.example.toml");
-        let c = ServerConfig::load(Some(&path), |_| None).unwrap();
+        let c = ServerConfig::load(Some(&path), none()).unwrap();
         c.validate().unwrap();
     }
 }

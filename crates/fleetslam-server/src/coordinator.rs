@@ -65,6 +65,10 @@ pub struct CoordinatorConfig {
     /// Websocket clients of all runs together; more get a 503. Default
     /// [`crate::ws_limit::DEFAULT_WS_MAX_TOTAL`] (256).
     pub ws_max_total: usize,
+    /// How often a live websocket is pinged and sent a heartbeat message (see
+    /// [`crate::ws_limit::Heartbeat`]). Default
+    /// [`crate::ws_limit::DEFAULT_WS_HEARTBEAT`] (5 s).
+    pub ws_heartbeat: Duration,
 }
 
 impl Default for CoordinatorConfig {
@@ -79,6 +83,7 @@ impl Default for CoordinatorConfig {
             max_future_s: crate::limits::Limits::default().max_future_s,
             ws_max_per_run: crate::ws_limit::DEFAULT_WS_MAX_PER_RUN,
             ws_max_total: crate::ws_limit::DEFAULT_WS_MAX_TOTAL,
+            ws_heartbeat: crate::ws_limit::DEFAULT_WS_HEARTBEAT,
         }
     }
 }
@@ -200,6 +205,10 @@ pub struct RunState {
     pub applied: u64,
     /// Data time of the last applied record [s].
     pub t: Option<f64>,
+    /// Data time of the run's start: its earliest trajectory point [s] (a page that opens a
+    /// live run mid-way counts data time from it). Absent from a state replayed at a time.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub t_start: Option<f64>,
     pub ess: f64,
     pub particles: usize,
     pub resamples: u64,
@@ -399,6 +408,11 @@ impl RunHandle {
     /// the command queue). Read after the state, they are at least as new as it.
     pub fn trajectories(&self) -> Trajectories {
         self.trajectories.borrow().to_map()
+    }
+
+    /// The filter's series, published with the trajectories.
+    pub fn filter_series(&self) -> Vec<crate::track::FilterPoint> {
+        self.trajectories.borrow().filter_series()
     }
 
     /// Requests waiting in the queue.
@@ -1321,6 +1335,13 @@ impl Coordinator {
                         if rep.joined {
                             out.joins.push(r.robot.clone());
                         }
+                        trajectories.push_filter(history::filter_point(
+                            filter.slam(),
+                            rep.slam.as_ref(),
+                            trajectories.last_filter(),
+                            r.t,
+                            ns,
+                        ));
                         out.reports.push((rep.slam, ns));
                         if let Some(i) = filter.slam().robot_index(&r.robot) {
                             trajectories
@@ -1551,6 +1572,7 @@ impl Coordinator {
             status: self.status.clone(),
             applied: self.applied,
             applied_t,
+            t_start: self.trajectories.first_t(),
             particle_sample: self.cfg.particle_sample,
             books,
             step_ms: step_ns
@@ -1581,6 +1603,7 @@ struct StateParts {
     status: String,
     applied: u64,
     applied_t: Option<f64>,
+    t_start: Option<f64>,
     particle_sample: usize,
     books: HashMap<String, RobotBook>,
     step_ms: f64,
@@ -1611,6 +1634,7 @@ impl StateParts {
             }
         }
         state.step_ms = self.step_ms;
+        state.t_start = self.t_start;
         state
     }
 }

@@ -69,7 +69,8 @@ impl RunSnapshot {
         self.last.as_ref().map_or(f64::MIN, |l| l.0)
     }
 
-    /// The trajectories this snapshot covers: those it carries (older snapshots), or those
+    /// The tracks this snapshot covers: the trajectories it carries (older snapshots), or
+    /// the trajectories and the filter's series ([`crate::track::FILTER_TRACK`])
     /// reassembled from the run's stored pieces.
     pub async fn load_trajectories(
         &self,
@@ -117,14 +118,7 @@ pub fn assemble_trajectories(
         if pts.len() >= want || first > pts.len() {
             continue;
         }
-        let piece: Vec<[f64; 4]> = serde_json::from_str(&c.points).map_err(|e| {
-            ApiError::internal(anyhow::anyhow!(
-                "a stored trajectory piece of robot {:?} is unreadable: {e}",
-                c.robot_id
-            ))
-        })?;
-        let skip = pts.len() - first;
-        pts.extend(piece.into_iter().skip(skip));
+        lay_piece(pts, first, &c)?;
         pts.truncate(want);
     }
     for (robot, pts) in &out {
@@ -138,6 +132,49 @@ pub fn assemble_trajectories(
         }
     }
     Ok(out)
+}
+
+/// Lays the stored piece `c`, whose first point has index `first` (at most `pts.len()`),
+/// at the end of `pts`, skipping the points `pts` already has (a piece written again after
+/// a crash overlaps the next one; the first one stored wins where they overlap).
+fn lay_piece(
+    pts: &mut Vec<[f64; 4]>,
+    first: usize,
+    c: &fleetslam_store::TrajectoryChunk,
+) -> Result<(), ApiError> {
+    let piece: Vec<[f64; 4]> = serde_json::from_str(&c.points).map_err(|e| {
+        ApiError::internal(anyhow::anyhow!(
+            "a stored trajectory piece of robot {:?} is unreadable: {e}",
+            c.robot_id
+        ))
+    })?;
+    let skip = pts.len() - first;
+    pts.extend(piece.into_iter().skip(skip));
+    Ok(())
+}
+
+/// A run's stored filter series ([`crate::track::FILTER_TRACK`]): its pieces laid end to
+/// end ([`lay_piece`]).
+pub async fn stored_series(
+    store: &Store,
+    run: &str,
+) -> Result<Vec<crate::track::FilterPoint>, ApiError> {
+    let chunks = store.track_chunks(run, crate::track::FILTER_TRACK).await?;
+    tokio::task::spawn_blocking(move || {
+        let mut out: Vec<crate::track::FilterPoint> = Vec::new();
+        for c in chunks {
+            let first = usize::try_from(c.first).unwrap_or(usize::MAX);
+            if first > out.len() {
+                return Err(ApiError::internal(anyhow::anyhow!(
+                    "the stored filter series has a hole before point {first}"
+                )));
+            }
+            lay_piece(&mut out, first, &c)?;
+        }
+        Ok(out)
+    })
+    .await
+    .map_err(ApiError::internal)?
 }
 
 /// The pieces to store with a snapshot: the points of `new` (robot -> points from index
@@ -195,6 +232,25 @@ pub struct RunResult<'a> {
 pub fn trajectory_point(filter: &FastSlam, i: usize, t: f64) -> [f64; 4] {
     let p = filter.mean_pose(i);
     [t, p.x, p.y, p.theta]
+}
+
+/// The filter's point after a record stepped in `ns` nanoseconds (see
+/// [`crate::track::FilterPoint`]): a step that moved the map reports its ESS and landmarks;
+/// one that did not (a robot being localized) leaves them as they were (`last`), and before
+/// any such step the map is empty and every particle weighs the same.
+pub fn filter_point(
+    filter: &FastSlam,
+    rep: Option<&fleetslam_core::filter::StepReport>,
+    last: Option<crate::track::FilterPoint>,
+    t: f64,
+    ns: u64,
+) -> crate::track::FilterPoint {
+    let (ess, landmarks) = match (rep, last) {
+        (Some(r), _) => (r.ess, r.landmarks as f64),
+        (None, Some(l)) => (l[1], l[3]),
+        (None, None) => (filter.config().particles as f64, 0.0),
+    };
+    [t, ess, ns as f64 / 1e6, landmarks]
 }
 
 /// Trajectories and landmarks as the files `fleetslam run` writes.
@@ -495,7 +551,9 @@ pub async fn state_at(
     let mut applied = snap.applied;
     let updater = updater_for(store, &snap.filter.slam.config).await?;
     let mut trajectories = if with_trajectories {
-        snap.load_trajectories(store, run).await?
+        let mut t = snap.load_trajectories(store, run).await?;
+        t.remove(crate::track::FILTER_TRACK);
+        t
     } else {
         Trajectories::new()
     };
@@ -602,6 +660,7 @@ pub fn base_state(
         status: status.to_string(),
         applied,
         t: applied_t,
+        t_start: None,
         ess: est.ess,
         particles: est.particles,
         resamples: slam.stats().resamples,

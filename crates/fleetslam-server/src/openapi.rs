@@ -22,6 +22,7 @@ use utoipa::OpenApi;
         crate::app::live,
         crate::api_history::get_state,
         crate::api_history::timeline,
+        crate::api_history::series,
         crate::api_history::trajectories,
         crate::api_history::put_truth,
         crate::api_history::get_truth,

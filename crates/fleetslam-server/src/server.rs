@@ -5,6 +5,7 @@ use crate::config::ServerConfig;
 use anyhow::Context;
 use fleetslam_store::Store;
 use std::net::SocketAddr;
+use std::sync::Arc;
 use tokio::sync::oneshot;
 
 /// A running server.
@@ -12,6 +13,8 @@ use tokio::sync::oneshot;
 pub struct Running {
     pub addr: SocketAddr,
     pub store: Store,
+    /// Where Foxglove connects (`foxglove_bind`), when it is served.
+    pub foxglove: Option<SocketAddr>,
     state: AppState,
     shutdown: Option<oneshot::Sender<()>>,
     task: tokio::task::JoinHandle<std::io::Result<()>>,
@@ -34,6 +37,9 @@ impl Running {
         }
         if let Some(c) = &self.state.cluster {
             c.release_all().await;
+        }
+        if let Some(f) = &self.state.foxglove {
+            f.stop();
         }
         Ok(())
     }
@@ -64,6 +70,11 @@ pub async fn start(cfg: &ServerConfig) -> anyhow::Result<Running> {
     let mut api = cfg.api();
     api.auth.loopback = addr.ip().is_loopback();
     let mut state = AppState::new(store.clone(), api);
+    if let Some(bind) = cfg.foxglove_addr().map_err(anyhow::Error::msg)? {
+        let live = crate::foxglove_live::FoxgloveLive::start(bind).await?;
+        tracing::info!(addr = %live.addr(), "Foxglove live view (Foxglove WebSocket protocol)");
+        state = state.with_foxglove(Arc::new(live));
+    }
     match cfg.cluster() {
         Some(cc) => {
             // Runs are recovered by whichever replica takes them (crate::cluster).
@@ -96,6 +107,7 @@ pub async fn start(cfg: &ServerConfig) -> anyhow::Result<Running> {
     Ok(Running {
         addr,
         store,
+        foxglove: state.foxglove.as_ref().map(|f| f.addr()),
         state,
         shutdown: Some(tx),
         task,

@@ -6,6 +6,12 @@
 //! copy the whole history: each robot's points are kept as sealed chunks of [`CHUNK`] points
 //! behind `Arc`s plus an open tail, and a copy of a [`TrajectoryLog`] shares the sealed
 //! chunks (it costs one pointer per chunk and at most `CHUNK` points per robot).
+//!
+//! Beside the robots' poses the log keeps the filter's own series, one point per applied
+//! record ([`FilterPoint`]): it is stored in the same pieces as the trajectories, under the
+//! track name [`FILTER_TRACK`] (which no robot id can be: ids have no '/'), so that it
+//! follows the snapshots, recovery and deletion of the run as they do. Readers of
+//! trajectories never see it ([`TrajectoryLog::to_map`]).
 
 use crate::history::Trajectories;
 use std::collections::BTreeMap;
@@ -14,10 +20,21 @@ use std::sync::Arc;
 /// Points per sealed chunk.
 pub const CHUNK: usize = 256;
 
-/// Per-robot trajectories as `[t, x, y, theta]`, cheap to copy (see the module's doc).
+/// The stored track name of the filter's series (see the module's doc).
+pub const FILTER_TRACK: &str = "/filter";
+
+/// The filter after an applied record: `[t, ess, step_ms, landmarks]` (data time [s], the
+/// effective sample size, the wall time of the record's step [ms], landmarks in the best
+/// particle). A step that did not move the map (a robot being localized) leaves the ESS and
+/// landmarks as they were.
+pub type FilterPoint = [f64; 4];
+
+/// Per-robot trajectories as `[t, x, y, theta]` and the filter's series, cheap to copy (see
+/// the module's doc).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct TrajectoryLog {
     robots: BTreeMap<String, Track>,
+    filter: Track,
 }
 
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -52,11 +69,17 @@ impl TrajectoryLog {
         Self::default()
     }
 
-    /// The log of `t`'s points.
+    /// The log of `t`'s points; a [`FILTER_TRACK`] entry is the filter's series.
     pub fn from_map(t: Trajectories) -> Self {
         let mut log = Self::new();
         for (robot, pts) in t {
-            log.insert(robot, pts);
+            if robot == FILTER_TRACK {
+                for p in pts {
+                    log.filter.push(p);
+                }
+            } else {
+                log.insert(robot, pts);
+            }
         }
         log
     }
@@ -78,20 +101,44 @@ impl TrajectoryLog {
         }
     }
 
-    /// Points of each robot.
+    /// Appends the filter's point after a record.
+    pub fn push_filter(&mut self, p: FilterPoint) {
+        self.filter.push(p);
+    }
+
+    /// The filter's last point.
+    pub fn last_filter(&self) -> Option<FilterPoint> {
+        self.filter
+            .tail
+            .last()
+            .or_else(|| self.filter.sealed.last().and_then(|c| c.last()))
+            .copied()
+    }
+
+    /// The filter's points.
+    pub fn filter_series(&self) -> Vec<FilterPoint> {
+        self.filter.iter().copied().collect()
+    }
+
+    /// Points of each track (each robot, and [`FILTER_TRACK`] once it has points): what a
+    /// snapshot covers.
     pub fn lens(&self) -> BTreeMap<String, usize> {
+        let filter = (self.filter.len() > 0).then(|| (FILTER_TRACK.to_string(), self.filter.len()));
         self.robots
             .iter()
             .map(|(r, t)| (r.clone(), t.len()))
+            .chain(filter)
             .collect()
     }
 
-    /// The points of each robot from index `from[robot]` (0 for a robot not in `from`) on:
-    /// what was added since `from` was taken with [`TrajectoryLog::lens`]. Robots with none
-    /// are left out.
+    /// The points of each track from index `from[track]` (0 for a track not in `from`) on:
+    /// what was added since `from` was taken with [`TrajectoryLog::lens`], to store. Tracks
+    /// with none are left out.
     pub fn since(&self, from: &BTreeMap<String, usize>) -> Trajectories {
+        let filter = FILTER_TRACK.to_string();
         self.robots
             .iter()
+            .chain(std::iter::once((&filter, &self.filter)))
             .filter_map(|(r, t)| {
                 let skip = from.get(r).copied().unwrap_or(0);
                 let pts: Vec<[f64; 4]> = t.iter().skip(skip).copied().collect();
@@ -100,7 +147,7 @@ impl TrajectoryLog {
             .collect()
     }
 
-    /// Every point, as the plain map (a copy: for readers and the final result).
+    /// Every robot's points, as the plain map (a copy: for readers and the final result).
     pub fn to_map(&self) -> Trajectories {
         self.robots
             .iter()
@@ -168,5 +215,34 @@ mod tests {
         assert_eq!(new["a"], (10..CHUNK + 20).map(pt).collect::<Vec<_>>());
         assert_eq!(new["b"], vec![pt(1)]);
         assert_eq!(log.since(&BTreeMap::new()), log.to_map());
+    }
+
+    /// The filter's series is stored with the tracks (lens, since, from_map) and never read
+    /// as a robot's trajectory.
+    #[test]
+    fn the_filter_series_is_stored_beside_the_robots_but_not_read_as_one() {
+        let mut log = TrajectoryLog::new();
+        log.push("a", pt(0));
+        assert_eq!(log.last_filter(), None);
+        assert!(!log.lens().contains_key(FILTER_TRACK));
+        for i in 0..(CHUNK + 3) {
+            log.push_filter(pt(i));
+        }
+        assert_eq!(log.last_filter(), Some(pt(CHUNK + 2)));
+        assert_eq!(log.lens()[FILTER_TRACK], CHUNK + 3);
+        assert_eq!(log.to_map().len(), 1);
+        assert_eq!(log.first_t(), Some(0.0));
+        let stored = log.since(&BTreeMap::new());
+        assert_eq!(stored[FILTER_TRACK].len(), CHUNK + 3);
+        assert_eq!(TrajectoryLog::from_map(stored), log);
+        let mark = log.lens();
+        log.push_filter(pt(9000));
+        assert_eq!(log.since(&mark)[FILTER_TRACK], vec![pt(9000)]);
+        let series = log.filter_series();
+        assert_eq!(series.len(), CHUNK + 4);
+        assert_eq!(
+            series[CHUNK + 1..],
+            [pt(CHUNK + 1), pt(CHUNK + 2), pt(9000)]
+        );
     }
 }

@@ -1,4 +1,5 @@
-//! Bounds on websocket connections (`GET /v1/runs/{run}/live`): at most
+//! Bounds on websocket connections (`GET /v1/runs/{run}/live`), and their heartbeat
+//! ([`Heartbeat`]). At most
 //! [`CoordinatorConfig::ws_max_per_run`] per run and [`CoordinatorConfig::ws_max_total`] in
 //! all. Each connection streams a run's states and events from its own task; without a bound,
 //! clients could make the server hold any number of them. Over a bound, the request gets a
@@ -19,6 +20,58 @@ use std::sync::{Arc, Mutex};
 pub const DEFAULT_WS_MAX_PER_RUN: usize = 32;
 /// Default for [`CoordinatorConfig::ws_max_total`].
 pub const DEFAULT_WS_MAX_TOTAL: usize = 256;
+/// Default for [`CoordinatorConfig::ws_heartbeat`].
+pub const DEFAULT_WS_HEARTBEAT: std::time::Duration = std::time::Duration::from_secs(5);
+/// Heartbeat periods without a word from the client (a pong or any message) after which
+/// the server closes a live connection; the dashboard gives the server as many.
+pub const HEARTBEAT_MISSES: u32 = 3;
+
+/// A live connection's heartbeat. On an idle run nothing else crosses a websocket, so
+/// neither end would notice that the other is gone (a closed laptop, a dropped network
+/// without a reset): each period the server pings the client (which answers with a pong,
+/// browsers by themselves) and sends `{"type":"heartbeat","period_ms":P}` (browsers' scripts
+/// never see pings; the dashboard counts a connection silent for [`HEARTBEAT_MISSES`]
+/// periods as lost and reconnects), and it closes a connection whose client said nothing for
+/// [`HEARTBEAT_MISSES`] periods, which frees its slot.
+#[derive(Debug)]
+pub struct Heartbeat {
+    period: std::time::Duration,
+    tick: tokio::time::Interval,
+    heard: tokio::time::Instant,
+}
+
+impl Heartbeat {
+    pub fn new(period: std::time::Duration) -> Self {
+        let mut tick = tokio::time::interval_at(tokio::time::Instant::now() + period, period);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        Self {
+            period,
+            tick,
+            heard: tokio::time::Instant::now(),
+        }
+    }
+
+    /// The client said something (a pong, a message).
+    pub fn heard(&mut self) {
+        self.heard = tokio::time::Instant::now();
+    }
+
+    /// Waits for the next beat.
+    pub async fn beat(&mut self) {
+        self.tick.tick().await;
+    }
+
+    /// The client has said nothing for [`HEARTBEAT_MISSES`] periods.
+    pub fn dead(&self) -> bool {
+        self.heard.elapsed() >= self.period * HEARTBEAT_MISSES
+    }
+
+    /// The heartbeat message.
+    pub fn message(&self) -> String {
+        serde_json::json!({"type": "heartbeat", "period_ms": self.period.as_millis() as u64})
+            .to_string()
+    }
+}
 
 /// The open websocket connections, per run and in total.
 #[derive(Debug, Default)]

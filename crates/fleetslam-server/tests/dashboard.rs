@@ -15,7 +15,6 @@
 //! `FLEETSLAM_REQUIRE_BROWSER=1` (set by `.ci/run`), which makes it fail.
 //! Run with `cargo test -p fleetslam-server --test dashboard -- --nocapture`.
 
-use base64::Engine as _;
 use fleetslam_core::log::{Log, Record};
 use fleetslam_server::config::ServerConfig;
 use fleetslam_server::server::{Running, start};
@@ -32,6 +31,9 @@ const DATASETS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared/dat
 const SLICE_S: f64 = 120.0;
 /// Particles of the test runs: enough for a sensible map, few enough for a debug build.
 const PARTICLES: usize = 100;
+/// The server's websocket heartbeat period [ms] (short, so that a silent network is noticed
+/// within the test).
+const HEARTBEAT_MS: u64 = 400;
 
 type BoxError = Box<dyn std::error::Error + Send + Sync>;
 type Res<T> = Result<T, BoxError>;
@@ -78,6 +80,35 @@ fn test_log() -> (Log, Value, String) {
     }
 }
 
+/// Robots of the scale run.
+const SCALE_ROBOTS: usize = 10;
+/// Landmarks the scale run's map must hold while the page is measured.
+const SCALE_MAP: usize = 5000;
+/// Particles of the scale run (the page's cost does not depend on them).
+const SCALE_PARTICLES: usize = 20;
+/// Data time posted in real time while the page is measured [s].
+const SCALE_MEASURED_S: f64 = 6.0;
+
+/// The scale run's log: 10 robots sweeping an arena dense with landmarks (about 90 in view
+/// per record), long enough for the map to hold more than [`SCALE_MAP`] landmarks before the
+/// measured part (offline with these particles and seed: 4,926 landmarks after 70 s, 5,180
+/// after 90 s, 5,394 after 110 s).
+fn scale_log() -> (Log, Value) {
+    let sim = fleetslam_data::sim::simulate(&fleetslam_data::sim::SimConfig {
+        robots: SCALE_ROBOTS,
+        landmarks: 6000,
+        arena: [60.0, 60.0],
+        speed: 1.0,
+        duration: 110.0,
+        seed: 5,
+        ..Default::default()
+    })
+    .expect("simulate");
+    let mut log = sim.log;
+    log.sort();
+    (log, truth_json(&sim.truth))
+}
+
 fn truth_json(truth: &fleetslam_data::formats::Truth) -> Value {
     let robots: serde_json::Map<String, Value> = truth
         .trajectories
@@ -113,6 +144,8 @@ impl Server {
         let cfg = ServerConfig {
             bind: "127.0.0.1:0".into(),
             data_dir: dir.path().to_path_buf(),
+            ws_heartbeat_ms: HEARTBEAT_MS,
+            max_landmarks_per_record: 2000,
             ..ServerConfig::default()
         };
         let running = start(&cfg).await.expect("server starts");
@@ -288,7 +321,32 @@ impl Server {
 struct Proxy {
     addr: std::net::SocketAddr,
     conns: Arc<Mutex<Vec<tokio::task::AbortHandle>>>,
+    /// While set, bytes are held in both directions and connections stay open: a network
+    /// that went away without a reset.
+    stalled: Arc<std::sync::atomic::AtomicBool>,
     task: tokio::task::JoinHandle<()>,
+}
+
+/// Copies `from` to `to`, holding each piece while `stalled` is set.
+async fn pump(
+    mut from: tokio::net::tcp::OwnedReadHalf,
+    mut to: tokio::net::tcp::OwnedWriteHalf,
+    stalled: Arc<std::sync::atomic::AtomicBool>,
+) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut buf = vec![0u8; 1 << 16];
+    loop {
+        let n = match from.read(&mut buf).await {
+            Ok(0) | Err(_) => return,
+            Ok(n) => n,
+        };
+        while stalled.load(std::sync::atomic::Ordering::Relaxed) {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        if to.write_all(&buf[..n]).await.is_err() {
+            return;
+        }
+    }
 }
 
 impl Proxy {
@@ -296,18 +354,35 @@ impl Proxy {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         let addr = listener.local_addr().unwrap();
         let conns: Arc<Mutex<Vec<tokio::task::AbortHandle>>> = Arc::default();
-        let registry = conns.clone();
+        let stalled: Arc<std::sync::atomic::AtomicBool> = Arc::default();
+        let (registry, held) = (conns.clone(), stalled.clone());
         let task = tokio::spawn(async move {
-            while let Ok((mut inbound, _)) = listener.accept().await {
+            while let Ok((inbound, _)) = listener.accept().await {
+                let held = held.clone();
                 let conn = tokio::spawn(async move {
-                    if let Ok(mut outbound) = tokio::net::TcpStream::connect(target).await {
-                        let _ = tokio::io::copy_bidirectional(&mut inbound, &mut outbound).await;
+                    if let Ok(outbound) = tokio::net::TcpStream::connect(target).await {
+                        let (ir, iw) = inbound.into_split();
+                        let (or, ow) = outbound.into_split();
+                        tokio::select! {
+                            () = pump(ir, ow, held.clone()) => {}
+                            () = pump(or, iw, held) => {}
+                        }
                     }
                 });
                 registry.lock().unwrap().push(conn.abort_handle());
             }
         });
-        Self { addr, conns, task }
+        Self {
+            addr,
+            conns,
+            stalled,
+            task,
+        }
+    }
+
+    /// Holds (true) or lets through (false) every byte, without closing anything.
+    fn stall(&self, on: bool) {
+        self.stalled.store(on, std::sync::atomic::Ordering::Relaxed);
     }
 
     /// Closes every connection under way (the websocket included).
@@ -325,7 +400,7 @@ impl Drop for Proxy {
     }
 }
 
-// --- a minimal WebDriver client ----------------------------------------------------------
+// --- the browser: chromedriver, driven through fantoccini --------------------------------
 
 /// chromedriver, stopped on drop.
 struct Driver {
@@ -371,17 +446,45 @@ impl Driver {
     }
 }
 
-/// One browser session (W3C WebDriver over HTTP).
+/// A WebDriver command that fantoccini has no method for (Chrome's DevTools bridge, the
+/// browser log): `method` on `session/<id>/<path>` with a JSON body.
+#[derive(Debug)]
+struct Raw {
+    method: http::Method,
+    path: &'static str,
+    body: Option<Value>,
+}
+
+impl fantoccini::wd::WebDriverCompatibleCommand for Raw {
+    fn endpoint(
+        &self,
+        base_url: &url::Url,
+        session_id: Option<&str>,
+    ) -> Result<url::Url, url::ParseError> {
+        base_url.join(&format!(
+            "session/{}/{}",
+            session_id.unwrap_or_default(),
+            self.path
+        ))
+    }
+
+    fn method_and_body(&self, _: &url::Url) -> (http::Method, Option<String>) {
+        (
+            self.method.clone(),
+            self.body.as_ref().map(Value::to_string),
+        )
+    }
+}
+
+/// One browser session, driven through fantoccini.
 struct Browser {
-    http: reqwest::Client,
-    session: String,
+    client: fantoccini::Client,
     _profile: tempfile::TempDir,
 }
 
 impl Browser {
     async fn new(driver: &Driver, chromium: &Path) -> Res<Self> {
         let profile = tempfile::tempdir()?;
-        let http = reqwest::Client::new();
         // The flags keep Chromium off the network (this machine has none) and quiet.
         let args = [
             "--headless=new".to_string(),
@@ -399,56 +502,43 @@ impl Browser {
             "--window-size=1440,900".into(),
             format!("--user-data-dir={}", profile.path().display()),
         ];
-        let caps = json!({"capabilities": {"alwaysMatch": {
+        let caps = json!({
             "browserName": "chrome",
             "goog:chromeOptions": {"binary": chromium, "args": args},
             "goog:loggingPrefs": {"browser": "ALL"},
-        }}});
-        let v: Value = http
-            .post(format!("{}/session", driver.base))
-            .json(&caps)
-            .send()
-            .await?
-            .json()
-            .await?;
-        let id = v["value"]["sessionId"]
-            .as_str()
-            .ok_or_else(|| format!("no session from chromedriver: {v}"))?;
+        });
+        let Value::Object(caps) = caps else {
+            unreachable!("a JSON object")
+        };
+        // chromedriver speaks plain HTTP on loopback: no TLS connector.
+        let connector = hyper_util::client::legacy::connect::HttpConnector::new();
+        let client = fantoccini::ClientBuilder::new(connector)
+            .capabilities(caps)
+            .connect(&driver.base)
+            .await
+            .map_err(|e| format!("no session from chromedriver: {e}"))?;
         Ok(Self {
-            http,
-            session: format!("{}/session/{id}", driver.base),
+            client,
             _profile: profile,
         })
     }
 
-    async fn cmd(&self, method: reqwest::Method, path: &str, body: Option<Value>) -> Res<Value> {
-        let mut req = self.http.request(method, format!("{}{path}", self.session));
-        if let Some(b) = body {
-            req = req.json(&b);
-        }
-        let resp = req.send().await?;
-        let status = resp.status();
-        let v: Value = resp.json().await?;
-        if !status.is_success() {
-            return Err(format!("webdriver {path}: {status}: {}", v["value"]).into());
-        }
-        Ok(v["value"].clone())
+    async fn raw(&self, method: http::Method, path: &'static str, body: Value) -> Res<Value> {
+        let cmd = Raw {
+            method,
+            path,
+            body: Some(body),
+        };
+        Ok(self.client.issue_cmd(cmd).await?)
     }
 
     async fn goto(&self, url: &str) -> Res<()> {
-        self.cmd(reqwest::Method::POST, "/url", Some(json!({"url": url})))
-            .await?;
-        Ok(())
+        Ok(self.client.goto(url).await?)
     }
 
     /// Runs `script` (a function body; `return` gives the value) in the page.
     async fn js(&self, script: &str) -> Res<Value> {
-        self.cmd(
-            reqwest::Method::POST,
-            "/execute/sync",
-            Some(json!({"script": script, "args": []})),
-        )
-        .await
+        Ok(self.client.execute(script, Vec::new()).await?)
     }
 
     /// Polls `script` until it returns something truthy; returns that value.
@@ -479,29 +569,26 @@ impl Browser {
     /// Emulates a phone's viewport (width x height CSS pixels, touch) through the DevTools
     /// protocol: a headless window's size includes browser chrome that a phone does not have.
     async fn emulate_phone(&self, width: u32, height: u32) -> Res<()> {
-        self.cmd(
-            reqwest::Method::POST,
-            "/goog/cdp/execute",
-            Some(
-                json!({"cmd": "Emulation.setDeviceMetricsOverride", "params": {
-                    "width": width, "height": height, "deviceScaleFactor": 1, "mobile": true,
-                    "screenOrientation": {"type": "landscapePrimary", "angle": 90},
-                }}),
-            ),
+        self.raw(
+            http::Method::POST,
+            "goog/cdp/execute",
+            json!({"cmd": "Emulation.setDeviceMetricsOverride", "params": {
+                "width": width, "height": height, "deviceScaleFactor": 1, "mobile": true,
+                "screenOrientation": {"type": "landscapePrimary", "angle": 90},
+            }}),
         )
         .await?;
-        self.cmd(
-            reqwest::Method::POST,
-            "/goog/cdp/execute",
-            Some(json!({"cmd": "Emulation.setTouchEmulationEnabled", "params": {"enabled": true}})),
+        self.raw(
+            http::Method::POST,
+            "goog/cdp/execute",
+            json!({"cmd": "Emulation.setTouchEmulationEnabled", "params": {"enabled": true}}),
         )
         .await?;
         Ok(())
     }
 
     async fn screenshot(&self, path: &Path) -> Res<()> {
-        let v = self.cmd(reqwest::Method::GET, "/screenshot", None).await?;
-        let png = base64::engine::general_purpose::STANDARD.decode(v.as_str().unwrap_or(""))?;
+        let png = self.client.screenshot().await?;
         if let Some(dir) = path.parent() {
             std::fs::create_dir_all(dir)?;
         }
@@ -521,11 +608,7 @@ impl Browser {
             Err(e) => vec![format!("reading the page's errors: {e}")],
         };
         let log = self
-            .cmd(
-                reqwest::Method::POST,
-                "/se/log",
-                Some(json!({"type": "browser"})),
-            )
+            .raw(http::Method::POST, "se/log", json!({"type": "browser"}))
             .await;
         let entries = match log {
             Ok(Value::Array(entries)) => entries,
@@ -558,8 +641,8 @@ impl Browser {
         out
     }
 
-    async fn quit(&self) {
-        let _ = self.cmd(reqwest::Method::DELETE, "", None).await;
+    async fn quit(self) {
+        let _ = self.client.close().await;
     }
 }
 
@@ -697,6 +780,37 @@ async fn dashboard_in_headless_chromium() {
             Duration::from_secs(15),
         )
         .await;
+    // The network goes silent without a reset: only the heartbeat can tell. The page says
+    // the connection is lost within three heartbeat periods, and comes back when the network
+    // does.
+    proxy.stall(true);
+    let stalled_at = Instant::now();
+    browser
+        .wait_for(
+            "the page to notice a silent connection",
+            "const b = document.querySelector('[data-testid=ws-banner]'); \
+             return b && !b.hidden && /lost/.test(b.textContent) ? b.textContent : null;",
+            Duration::from_secs(10),
+        )
+        .await;
+    let noticed = stalled_at.elapsed();
+    println!("a silent connection noticed after {noticed:?}");
+    // Three periods after the last message heard, which came at most a period before.
+    assert!(
+        noticed >= Duration::from_millis(2 * HEARTBEAT_MS),
+        "lost after {noticed:?}, before three heartbeats: something else closed it"
+    );
+    proxy.stall(false);
+    browser
+        .wait_for(
+            "the live view to reconnect after the silence",
+            "const d = document.getElementById('status').dataset; \
+             const n = [...document.querySelectorAll('[data-testid=events] li')] \
+               .filter(li => /restored/.test(li.textContent)).length; \
+             return d.ws === 'open' && n >= 2;",
+            Duration::from_secs(15),
+        )
+        .await;
     server.post_in_order(&live, &live_tokens, &second).await;
     browser
         .wait_for(
@@ -709,6 +823,34 @@ async fn dashboard_in_headless_chromium() {
         .await;
     browser.screenshot(&shots.join("live.png")).await.unwrap();
     assert_no_errors(&browser, "live view").await;
+
+    // The live run opened again mid-way: data time counts from the run's start, and the
+    // charts hold the run's history from before the page opened.
+    let t_start = server.get(&format!("/v1/runs/{live}/state")).await["t_start"]
+        .as_f64()
+        .expect("a live state carries the run's start time");
+    browser.goto(&format!("{base}/#/run/{live}")).await.unwrap();
+    let reopened = browser
+        .wait_for(
+            "the live run opened mid-way, its charts filled",
+            "const d = document.getElementById('status').dataset;              return d.ws === 'open' && d.backfilled === '1' && d.elapsed !== ''                ? Object.assign({}, d) : null;",
+            Duration::from_secs(10),
+        )
+        .await;
+    println!("reopened mid-way: {reopened}");
+    let num = |k: &str| reopened[k].as_str().unwrap().parse::<f64>().unwrap();
+    let first_half = t_mid - t_start;
+    assert!(
+        num("elapsed") >= first_half,
+        "data time {} s does not count from the run's start ({first_half} s of data before \
+         the page opened)",
+        num("elapsed")
+    );
+    assert!(
+        num("chartFrom") <= 0.1 * first_half && num("chartPoints") >= 50.0,
+        "the charts do not hold the run's history: {reopened}"
+    );
+    assert_no_errors(&browser, "live run opened mid-way").await;
     server.end(&live).await;
     browser
         .wait_for(
@@ -882,6 +1024,97 @@ async fn dashboard_in_headless_chromium() {
         .await
         .unwrap();
     assert_no_errors(&browser, "comparison").await;
+
+    // Scale: 10 robots mapping more than 5,000 landmarks, watched live. Measured: what the
+    // websocket carries per second and per state (compact states carry only the landmarks
+    // that changed), against the size of a full state, and the map's draw time per frame.
+    let (big, big_truth) = scale_log();
+    let (scale_run, scale_tokens) = server
+        .create_run(
+            &big,
+            &big_truth,
+            "scale: 10 robots, 5,000 landmarks",
+            json!({"particles": SCALE_PARTICLES, "seed": 1}),
+        )
+        .await;
+    let t_end = big.records.last().unwrap().t;
+    let (bulk, paced): (Vec<Record>, Vec<Record>) = big
+        .records
+        .iter()
+        .cloned()
+        .partition(|r| r.t < t_end - SCALE_MEASURED_S);
+    server.post(&scale_run, &scale_tokens, &bulk).await;
+    server.settled_applied(&scale_run).await;
+    browser
+        .goto(&format!("{base}/#/run/{scale_run}"))
+        .await
+        .unwrap();
+    let start = browser
+        .wait_for(
+            "the scale run's map",
+            &format!(
+                "const d = document.getElementById('status').dataset; \
+                 return d.ws === 'open' && Number(d.landmarks) >= {SCALE_MAP} \
+                   ? Object.assign({{}}, d) : null;"
+            ),
+            Duration::from_secs(30),
+        )
+        .await;
+    let measured_from = Instant::now();
+    let t0 = paced[0].t;
+    for second in 0..(SCALE_MEASURED_S.ceil() as usize) {
+        let slice: Vec<Record> = paced
+            .iter()
+            .filter(|r| ((r.t - t0).floor() as usize) == second)
+            .cloned()
+            .collect();
+        server
+            .post_in_order(&scale_run, &scale_tokens, &slice)
+            .await;
+        let due = measured_from + Duration::from_secs(second as u64 + 1);
+        tokio::time::sleep_until(due.into()).await;
+    }
+    let end = browser.status().await;
+    let wall = measured_from.elapsed().as_secs_f64();
+    let num = |v: &Value, k: &str| v[k].as_str().unwrap().parse::<f64>().unwrap();
+    let bytes = num(&end, "wsBytes") - num(&start, "wsBytes");
+    let states = num(&end, "wsStates") - num(&start, "wsStates");
+    let full = server
+        .http
+        .get(format!("{}/v1/runs/{scale_run}/state", server.base))
+        .send()
+        .await
+        .unwrap()
+        .bytes()
+        .await
+        .unwrap()
+        .len() as f64;
+    println!(
+        "scale ({SCALE_ROBOTS} robots, {} landmarks shown): websocket {:.1} kB/s, {:.1} kB per \
+         state over {states} states (a full state is {:.1} kB); map frame mean {} ms, max {} \
+         ms over {} frames",
+        end["landmarks"],
+        bytes / wall / 1e3,
+        bytes / states.max(1.0) / 1e3,
+        full / 1e3,
+        end["frameMs"],
+        end["frameMaxMs"],
+        end["frames"]
+    );
+    // The page keeps receiving states while robots post (measured here: 15 and 18 states
+    // over the 6 s, as the server publishes them after each second's records), and a state
+    // carries what changed (measured: 48 kB per state against a full state of 893 kB).
+    assert!(
+        states >= 2.0 * SCALE_MEASURED_S,
+        "{states} states in {wall:.1} s"
+    );
+    assert!(
+        bytes / states < 0.1 * full,
+        "compact states are not compact: {:.0} bytes per state, a full state {full:.0}",
+        bytes / states
+    );
+    browser.screenshot(&shots.join("scale.png")).await.unwrap();
+    assert_no_errors(&browser, "scale run").await;
 
     // A phone in landscape: nothing wider than the screen, the map visible.
     browser.emulate_phone(844, 390).await.unwrap();

@@ -1,7 +1,7 @@
 //! Readers never slow writers (issue 11): the state, trajectories, timeline and export of a
 //! live run answer while its coordinator is stuck in a filter step with a full queue (they
 //! never go through its queue), and websocket connections are bounded per run and in total
-//! with a JSON 503 before the upgrade.
+//! with a JSON 503 before the upgrade and let go of when their client stops answering.
 
 use axum::http::StatusCode;
 use fleetslam_core::config::FilterConfig;
@@ -346,5 +346,78 @@ async fn websocket_connections_are_bounded_per_run_and_in_total() {
         }
     }
     assert!(again.is_some(), "the slot of a closed connection came back");
+    server.abort();
+}
+
+/// An idle run's connection gets a heartbeat (a ping and a message) every period and stays
+/// open while its client answers; a client that stops answering is dropped after three
+/// periods, which gives its slot back.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn heartbeats_keep_idle_connections_and_drop_silent_clients() {
+    use futures::StreamExt;
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::open_default(dir.path()).await.unwrap();
+    let mut api = ApiConfig::default();
+    api.coordinator.ws_max_per_run = 1;
+    api.coordinator.ws_heartbeat = Duration::from_millis(100);
+    let router = app(AppState::new(store.clone(), api));
+    let h = Harness {
+        router: router.clone(),
+        store,
+        dir: tempfile::tempdir().unwrap(),
+    };
+    let log = sim_log(1, 2.0);
+    let (s, v) = h
+        .json("POST", "/v1/runs", None, json!({"header": log.header}))
+        .await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let run = v["id"].as_str().unwrap().to_string();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let server = tokio::spawn(async move { axum::serve(listener, router).await.unwrap() });
+
+    // Read for 10 periods: reading answers the pings, so the connection stays; nothing
+    // happens in the run, so heartbeats are all that arrives.
+    let mut ws = ws_connect(addr, &run).await.unwrap();
+    let until = tokio::time::Instant::now() + Duration::from_millis(1000);
+    let mut beats = 0;
+    while let Ok(msg) = tokio::time::timeout_at(until, ws.next()).await {
+        let msg = msg.expect("the connection stays open").unwrap();
+        if let Ok(text) = msg.into_text()
+            && !text.is_empty()
+        {
+            let v: Value = serde_json::from_str(&text).unwrap();
+            assert_eq!(v["type"], "heartbeat", "{v}");
+            assert_eq!(v["period_ms"], 100);
+            beats += 1;
+        }
+    }
+    assert!(
+        (8..=11).contains(&beats),
+        "{beats} heartbeats in 10 periods"
+    );
+    // The one slot is taken.
+    assert_eq!(ws_connect(addr, &run).await.unwrap_err().0, 503);
+
+    // Stop reading: no pong goes back, and after three periods the server lets go.
+    let stopped = std::time::Instant::now();
+    let mut again = None;
+    for _ in 0..200 {
+        match ws_connect(addr, &run).await {
+            Ok(w) => {
+                again = Some(w);
+                break;
+            }
+            Err((503, _)) => tokio::time::sleep(Duration::from_millis(10)).await,
+            Err(other) => panic!("{other:?}"),
+        }
+    }
+    let waited = stopped.elapsed();
+    assert!(again.is_some(), "a silent client kept its slot");
+    assert!(
+        waited >= Duration::from_millis(150),
+        "the silent client was dropped after {waited:?}, before three periods"
+    );
+    drop(ws);
     server.abort();
 }

@@ -884,17 +884,49 @@ impl Store {
         Ok(())
     }
 
+    /// The stored pieces of one track of a run (a robot's trajectory, or a series its
+    /// caller stores beside them under a name no robot id takes), by first index.
+    pub async fn track_chunks(
+        &self,
+        run_id: &str,
+        track: &str,
+    ) -> Result<Vec<TrajectoryChunk>, StoreError> {
+        self.chunks(
+            "SELECT robot_id, first_index, points FROM trajectory_chunks \
+             WHERE run_id = $1 AND robot_id = $2 ORDER BY first_index",
+            run_id,
+            Some(track),
+        )
+        .await
+    }
+
     /// Every stored piece of a run's trajectories, by robot, then by first index.
     pub async fn trajectory_chunks(
         &self,
         run_id: &str,
     ) -> Result<Vec<TrajectoryChunk>, StoreError> {
-        let sql = "SELECT robot_id, first_index, points FROM trajectory_chunks WHERE run_id = $1 \
-                   ORDER BY robot_id, first_index";
+        self.chunks(
+            "SELECT robot_id, first_index, points FROM trajectory_chunks WHERE run_id = $1 \
+             ORDER BY robot_id, first_index",
+            run_id,
+            None,
+        )
+        .await
+    }
+
+    /// The pieces `sql` selects for the run (`$1`) and, when given, the track (`$2`).
+    async fn chunks(
+        &self,
+        sql: &str,
+        run_id: &str,
+        track: Option<&str>,
+    ) -> Result<Vec<TrajectoryChunk>, StoreError> {
         let rows = with_pool!(&self.inner.pool, pool => {
-            sqlx::query(sql)
-                .bind(run_id)
-                .fetch_all(pool)
+            let mut q = sqlx::query(sql).bind(run_id);
+            if let Some(t) = track {
+                q = q.bind(t);
+            }
+            q.fetch_all(pool)
                 .await?
                 .into_iter()
                 .map(|row| {

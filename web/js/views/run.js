@@ -20,6 +20,29 @@ const RATE_WINDOW_MS = 3000;
 const TRAJECTORY_REFRESH_MS = 3000;
 /** Events kept in the list. */
 const MAX_EVENTS = 200;
+/** Points of the filter's series fetched to fill the charts of a run opened mid-way. */
+const SERIES_POINTS = 3000;
+/** Buckets the charts draw that series in (the ESS at each one's end, its median step). */
+const SERIES_BUCKETS = 300;
+const ESS_COLOR = "#0072b2";
+const STEP_COLOR = "#d55e00";
+
+/**
+ * The series `[[t, ess, step_ms, landmarks], ...]` in at most `n` buckets of consecutive
+ * points, as `[t, ess, step_ms]`: the time and ESS of a bucket's last point and the median
+ * step time of its points (what a live state reports over its interval).
+ */
+export function bucketSeries(points, n) {
+  const size = Math.max(1, Math.ceil(points.length / n));
+  const out = [];
+  for (let i = 0; i < points.length; i += size) {
+    const b = points.slice(i, i + size);
+    const steps = b.map((p) => p[2]).sort((x, y) => x - y);
+    const last = b[b.length - 1];
+    out.push([last[0], last[1], steps[Math.floor(steps.length / 2)]]);
+  }
+  return out;
+}
 
 export function mountRun(root, id, ctx) {
   let destroyed = false;
@@ -35,6 +58,8 @@ export function mountRun(root, id, ctx) {
     evaluation: null,
     colors: {},
     t0: null, // data time of the run's start, for charts and labels
+    backfilled: false, // the charts hold the run's history from before the page opened
+    trajLast: {}, // id -> time of the last trajectory point fetched from the server
     robotSeen: {}, // id -> {records, changedAt, samples: [[wall, records]]}
   };
 
@@ -166,6 +191,7 @@ export function mountRun(root, id, ctx) {
 
   function renderFigures(s) {
     const rel = s.t !== null && s.t !== undefined && view.t0 !== null ? s.t - view.t0 : null;
+    ctx.report({ elapsed: rel ?? "" });
     const item = (label, value, testid) =>
       h("div.figure", { "data-testid": testid }, h("div.fig-label", {}, label),
         h("div.fig-value", {}, value));
@@ -241,15 +267,39 @@ export function mountRun(root, id, ctx) {
 
   function pushCharts(s, { label = true } = {}) {
     if (s.t === null || s.t === undefined) return;
-    if (view.t0 === null) view.t0 = s.t;
+    if (view.t0 === null) view.t0 = s.t_start ?? s.t;
     const x = s.t - view.t0;
-    essChart.push("ess", "#0072b2", x, s.ess);
+    essChart.push("ess", ESS_COLOR, x, s.ess);
     if (label) essChart.setValue(`${fmt(s.ess, 0)} / ${fmtInt(s.particles)}`);
     // A state with no step in its interval (idle, or a stored final state) has step_ms 0.
     if (s.step_ms > 0) {
-      stepChart.push("step", "#d55e00", x, s.step_ms);
+      stepChart.push("step", STEP_COLOR, x, s.step_ms);
       if (label) stepChart.setValue(fmtMs(s.step_ms));
     }
+    reportCharts();
+  }
+
+  function reportCharts() {
+    const pts = essChart.series.get("ess")?.points || [];
+    ctx.report({ chartPoints: pts.length, chartFrom: pts.length ? pts[0][0] : "" });
+  }
+
+  /**
+   * Fills the charts with the filter's series from the server (every record, the run's
+   * history before the page opened included); says whether the server had one.
+   */
+  async function backfillCharts() {
+    const series = await api.getSeries(id, SERIES_POINTS).catch(() => null);
+    const pts = series?.points || [];
+    if (destroyed || !pts.length) return false;
+    if (view.t0 === null) view.t0 = pts[0][0];
+    for (const [t, ess, step] of bucketSeries(pts, SERIES_BUCKETS)) {
+      essChart.push("ess", ESS_COLOR, t - view.t0, ess);
+      if (step > 0) stepChart.push("step", STEP_COLOR, t - view.t0, step);
+    }
+    reportCharts();
+    ctx.report({ backfilled: 1 });
+    return true;
   }
 
   /**
@@ -264,7 +314,6 @@ export function mountRun(root, id, ctx) {
       if (destroyed || !s || (s.t !== null && s.t !== undefined && s.t > t + 1e-6)) break;
       pushCharts(s, { label: false });
     }
-    if (!destroyed) ctx.report({ sampled: 1 });
   }
 
   function addEvent(ev) {
@@ -344,21 +393,32 @@ export function mountRun(root, id, ctx) {
     ctx.setConnection("connecting", "Connecting…");
     let wasLost = false;
     // The server keeps each robot's mean pose after every record: the states only give a
-    // pose ten times a second. Fetch it now (a page opened mid-run) and now and then.
-    const refreshTrajectories = () => api.getTrajectories(id).then((tr) => {
-      if (!tr || destroyed || !socket) return;
-      for (const [rid, pts] of Object.entries(tr.robots || {})) {
-        if (!pts.length) continue;
-        const tEnd = pts[pts.length - 1][0];
-        const mean = view.liveTraj.mean[rid] || [];
-        view.liveTraj.mean[rid] = pts.concat(mean.filter((p) => p[0] > tEnd));
-        const best = view.liveTraj.best[rid] || [];
-        const t0 = best.length ? best[0][0] : Infinity;
-        view.liveTraj.best[rid] = pts.filter((p) => p[0] < t0).concat(best);
-      }
-      view.trajectories = view.liveTraj[view.poseMode];
-      draw();
-    }).catch(() => {});
+    // pose ten times a second. Fetch it now (a page opened mid-run), then now and then the
+    // points added since (those after the earliest robot's last fetched point; all of them
+    // again when a robot appears that no fetch had).
+    const refreshTrajectories = () => {
+      const known = Object.keys(view.trajLast);
+      const robots = view.state ? view.state.robots.map((r) => r.id) : [];
+      const since = known.length && robots.every((r) => r in view.trajLast)
+        ? Math.min(...Object.values(view.trajLast)) : null;
+      return api.getTrajectories(id, since).then((tr) => {
+        if (!tr || destroyed || !socket) return;
+        for (const [rid, pts] of Object.entries(tr.robots || {})) {
+          if (!pts.length) continue;
+          const tBegin = pts[0][0];
+          const tEnd = pts[pts.length - 1][0];
+          view.trajLast[rid] = tEnd;
+          const mean = view.liveTraj.mean[rid] || [];
+          view.liveTraj.mean[rid] = mean.filter((p) => p[0] < tBegin).concat(pts,
+            mean.filter((p) => p[0] > tEnd));
+          const best = view.liveTraj.best[rid] || [];
+          const t0 = best.length ? best[0][0] : Infinity;
+          view.liveTraj.best[rid] = pts.filter((p) => p[0] < t0).concat(best);
+        }
+        view.trajectories = view.liveTraj[view.poseMode];
+        draw();
+      }).catch(() => {});
+    };
     refreshTrajectories();
     view.trajTimer = setInterval(refreshTrajectories, TRAJECTORY_REFRESH_MS);
     api.getTruth(id).then((t) => {
@@ -382,7 +442,15 @@ export function mountRun(root, id, ctx) {
         }
         view.trajectories = view.liveTraj[view.poseMode];
         pushCharts(s);
+        // A page opened mid-way: the charts' history before it, once.
+        if (!view.backfilled && s.t !== null && s.t !== undefined) {
+          view.backfilled = true;
+          backfillCharts();
+        }
         draw();
+        const fs = map.frameStats();
+        ctx.report({ wsBytes: socket.bytes, wsStates: socket.states, frames: fs.frames,
+          frameMs: fs.mean.toFixed(3), frameMaxMs: fs.max.toFixed(3) });
         if (s.status && s.status !== "active") toHistory();
       },
       onEvent(ev) {
@@ -484,14 +552,19 @@ export function mountRun(root, id, ctx) {
     view.t0 = range ? range[0] : final.t;
     // Events stream live only: a stored run shows those seen while this page watched it.
     eventsSection.hidden = eventsList.children.length === 0;
-    chartsTitle.textContent = "Over the run (sampled)";
     renderErrors();
     pushCharts(final);
     draw();
-    if (range && range[1] > range[0]) {
-      setupTimeline(range, final);
-      sampleHistory(range);
-    }
+    if (range && range[1] > range[0]) setupTimeline(range, final);
+    // Every record's ESS and step time; a run stored before the server kept them is sampled
+    // at evenly spaced times instead.
+    backfillCharts().then(async (filled) => {
+      if (!filled && range && range[1] > range[0]) {
+        chartsTitle.textContent = "Over the run (sampled)";
+        await sampleHistory(range);
+      }
+      if (!destroyed) ctx.report({ sampled: 1 });
+    });
     ctx.report({ ready: 1 });
   }
 

@@ -5,6 +5,16 @@ use std::io::{BufRead, BufReader};
 use std::path::Path;
 use std::process::{Child, Command, Output, Stdio};
 
+/// `GET url` as JSON; null when the server cannot be reached or answers no JSON.
+pub fn get_json(rt: &tokio::runtime::Runtime, url: &str) -> serde_json::Value {
+    rt.block_on(async {
+        match reqwest::get(url).await {
+            Ok(r) => r.json().await.unwrap_or(serde_json::Value::Null),
+            Err(_) => serde_json::Value::Null,
+        }
+    })
+}
+
 pub fn fleetslam(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_fleetslam"))
         .args(args)

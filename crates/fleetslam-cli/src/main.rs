@@ -98,28 +98,39 @@ enum ExperimentCommand {
 struct RtpfArgs {
     #[arg(long)]
     out: PathBuf,
-    /// Runs per policy and window size [default: the config file's, else 30].
+    /// `building` (the paper-like setting: a 36 m x 12 m hallway loop of 8 identical
+    /// modules, dense side-looking scans, windows 4 and 8-12, 2000 samples, 300 records) or
+    /// `corridor` (the small symmetric loop: windows 2-14, 3000 samples, 300 records).
+    #[arg(long, value_enum, default_value = "building")]
+    setting: SettingArg,
+    /// Runs per policy and window size (default 30).
     #[arg(long)]
     seeds: Option<usize>,
-    /// Window sizes, comma-separated [default: the config file's, else 2 to 14].
+    /// Window sizes, comma-separated (default: the setting's).
     #[arg(long, value_delimiter = ',')]
     windows: Option<Vec<usize>>,
-    /// Policies besides the baseline, comma-separated [default: the config file's, else
-    /// skip,naive,uniform,rtpf].
+    /// Policies besides the baseline, comma-separated (default all four).
     #[arg(long, value_delimiter = ',')]
     policies: Option<Vec<PolicyArg>>,
-    /// Sample budget per update [default: the config file's, else 3000].
+    /// Sample budget per update (default: the setting's).
     #[arg(long)]
     samples: Option<usize>,
-    /// Records (seconds) per run [default: the config file's, else 300].
+    /// Records (seconds) per run (default: the setting's).
     #[arg(long)]
     records: Option<usize>,
-    /// A JSON or TOML file with any RtpfExperiment fields; flags given explicitly win.
+    /// A JSON or TOML file with any RtpfExperiment fields over the setting's; flags given
+    /// explicitly win.
     #[arg(long)]
     config: Option<PathBuf>,
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum SettingArg {
+    Building,
+    Corridor,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -697,7 +708,12 @@ fn cmd_run(a: RunArgs) -> Result<()> {
 }
 
 fn cmd_experiment_rtpf(a: RtpfArgs) -> Result<()> {
-    let mut exp: RtpfExperiment = layered(&RtpfExperiment::default(), a.config.as_deref())?;
+    use fleetslam_localize::experiment::Setting;
+    let setting = match a.setting {
+        SettingArg::Building => Setting::Building,
+        SettingArg::Corridor => Setting::Corridor,
+    };
+    let mut exp: RtpfExperiment = layered(&RtpfExperiment::preset(setting), a.config.as_deref())?;
     if let Some(v) = a.seeds {
         exp.seeds = v;
     }
@@ -730,9 +746,10 @@ fn cmd_experiment_rtpf(a: RtpfArgs) -> Result<()> {
         started.elapsed().as_secs_f64(),
         a.out.display()
     );
+    let speed = fleetslam_localize::experiment::speedups(&results, exp.records as f64);
     println!(
         "{}",
-        fleetslam_localize::experiment::markdown_table(&sums, exp.records as f64)
+        fleetslam_localize::experiment::markdown_table(&sums, &speed, exp.records as f64)
     );
     Ok(())
 }

@@ -225,6 +225,14 @@ fn experiment_rtpf_writes_its_tables_and_plot() {
     let times = std::fs::read_to_string(out.join("times.csv")).unwrap();
     // The baseline and 4 policies x 2 windows.
     assert_eq!(times.lines().count(), 1 + 1 + 8, "{times}");
+    // One speedup per window, with its bootstrap interval around it.
+    let speedup = std::fs::read_to_string(out.join("speedup.csv")).unwrap();
+    assert!(speedup.starts_with("window,skip_time_s,rtpf_time_s,speedup_rtpf_over_skip,speedup_ci95_low,speedup_ci95_high\n"), "{speedup}");
+    assert_eq!(speedup.lines().count(), 1 + 2, "{speedup}");
+    for line in speedup.lines().skip(1) {
+        let v: Vec<f64> = line.split(',').map(|x| x.parse().unwrap()).collect();
+        assert!(v[4] <= v[3] && v[3] <= v[5], "{line}");
+    }
     let png = std::fs::read(out.join("rtpf.png")).unwrap();
     assert_eq!(&png[1..4], b"PNG");
 }

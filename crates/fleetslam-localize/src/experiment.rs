@@ -1,15 +1,23 @@
 //! The experiment of the real-time particle filter paper (Kwok, Fox, Meila, section 4),
 //! reproduced in simulation: `fleetslam experiment rtpf`.
 //!
-//! **World.** A rectangular corridor loop ([`LoopWorld`]) lined with identical posts at
-//! irregular places along one half of the loop, repeated on the other half turned by half a
-//! turn: the map is symmetric, every view recurs once, and a few extra posts at unique places
-//! are the only distinguishing features. Observations carry no ids (association by maximum
-//! likelihood), as the paper's robot saw only distances to walls.
+//! **Worlds.** A rectangular hallway loop ([`LoopWorld`]) lined with identical posts, in two
+//! settings ([`Setting`]):
+//! - `building` ([`LoopWorld::building`], [`RtpfExperiment::building`]), the paper-like
+//!   one: a 36 m x 12 m loop whose posts repeat in a 12 m module (8 identical places), a
+//!   dense scan of about ten readings per record through two side-looking fields of view
+//!   (the paper's robot measured the distances to the walls on its left and right), and
+//!   four distinguishing posts that are recognised in about two consecutive records only;
+//! - `corridor` ([`LoopWorld::default`]): a 24 m x 12 m loop whose second half is the
+//!   first turned by half a turn (every view recurs once), a forward-looking sensor and
+//!   three distinguishing posts visible for several metres.
+//!
+//! Observations carry no ids (association by maximum likelihood), as the paper's robot saw
+//! only distances to walls.
 //!
 //! **Robot.** It drives around the loop from a random place (one per seed) at 0.5 m per
-//! record (one record per second), reports noisy odometry, and sees the posts within a few
-//! metres in front of it with range-bearing noise.
+//! record (one record per second), reports noisy odometry, and sees the posts in its fields
+//! of view with range-bearing noise.
 //!
 //! **Prior.** Uniform along the corridor, facing along it in either direction
 //! ([`RtpfExperiment::corridor_prior`]): the free space of the paper's map is its corridors.
@@ -24,7 +32,7 @@
 //! which the error stays below a threshold for a hold period (runs that never localize count
 //! at the end time and are reported). Means come with 95% confidence intervals
 //! (`± 1.96 s / √n`, the normal approximation), and the speedup of RTPF over skip is the
-//! ratio of their mean localization times.
+//! ratio of their mean localization times with a paired bootstrap interval ([`speedups`]).
 
 use crate::config::{LocalizeConfig, Models, Policy, Window};
 use crate::error::LocalizeError;
@@ -67,6 +75,20 @@ pub struct LoopWorld {
     pub fov: f64,
     /// Probability that a post in view is detected. Default 0.9.
     pub detection: f64,
+    /// Length of the repeated module of posts along the loop [m]. Default 0: the posts of
+    /// the first half of the loop recur on the second half turned by half a turn (every view
+    /// recurs once). A positive length repeats one module's posts all around the loop, as
+    /// identical offices along a hallway: every view recurs `perimeter / period` times.
+    pub period: f64,
+    /// Where the sensor looks. Default false: one field of view of `fov` centred ahead. True:
+    /// two fields of view of `fov` each, centred to the left and to the right, as the
+    /// paper's robot saw the walls with two laser beams pointing sideways.
+    pub sides: bool,
+    /// Range within which a distinguishing post is detected [m]. Default 3.5 (as the other
+    /// posts). Shorter makes the distinguishing posts visible in fewer consecutive records,
+    /// the "valuable sensor data occurring at unpredictable time points" for which the paper
+    /// expects the largest gain.
+    pub feature_range: f64,
 }
 
 impl Default for LoopWorld {
@@ -81,6 +103,36 @@ impl Default for LoopWorld {
             max_range: 3.5,
             fov: std::f64::consts::PI,
             detection: 0.9,
+            period: 0.0,
+            sides: false,
+            feature_range: 3.5,
+        }
+    }
+}
+
+impl LoopWorld {
+    /// The paper-like building (`--setting building`): a 36 m x 12 m hallway loop whose
+    /// walls are lined with posts every 0.5 m on average (a dense scan: about nine readings
+    /// per record), in a 12 m module repeated 8 times around the loop (identical offices:
+    /// every view recurs 8 times, and each side of the loop is a whole number of modules,
+    /// so the corners look alike too); the robot sees both walls through two side-looking
+    /// fields of view of 120°, as the paper's robot saw them with two beams pointing left
+    /// and right; four distinguishing posts half-way to the wall are recognised within
+    /// 0.9 m only, that is in about two consecutive records.
+    pub fn building() -> Self {
+        Self {
+            length: 36.0,
+            width: 12.0,
+            post_spacing: 0.5,
+            wall_offset: 1.5,
+            features: 4,
+            step: 0.5,
+            max_range: 3.5,
+            fov: 120f64.to_radians(),
+            detection: 0.9,
+            period: 12.0,
+            sides: true,
+            feature_range: 0.9,
         }
     }
 }
@@ -138,18 +190,38 @@ impl LoopWorld {
             },
         };
         let mut rng = stream(0x5EED_10CA, 0, 0);
-        let half = 0.5 * self.perimeter();
-        let mut s = rng.random::<f64>() * self.post_spacing;
-        while s < half {
+        let wall = |s: f64, side: f64| {
             let (x, y, th) = self.along(s);
-            let side = if rng.random::<bool>() { 1.0 } else { -1.0 };
-            let (px, py) = (
+            (
                 x - side * self.wall_offset * th.sin(),
                 y + side * self.wall_offset * th.cos(),
-            );
-            lms.push(post(px, py));
-            lms.push(post(self.length - px, self.width - py));
-            s += self.post_spacing * (0.5 + rng.random::<f64>());
+            )
+        };
+        if self.period > 0.0 {
+            // One module's posts (arc length within the module, side), then every copy.
+            let mut module = Vec::new();
+            let mut s = rng.random::<f64>() * self.post_spacing;
+            while s < self.period {
+                module.push((s, if rng.random::<bool>() { 1.0 } else { -1.0 }));
+                s += self.post_spacing * (0.5 + rng.random::<f64>());
+            }
+            let copies = (self.perimeter() / self.period).floor() as usize;
+            for c in 0..copies {
+                for &(s, side) in &module {
+                    let (px, py) = wall(c as f64 * self.period + s, side);
+                    lms.push(post(px, py));
+                }
+            }
+        } else {
+            let half = 0.5 * self.perimeter();
+            let mut s = rng.random::<f64>() * self.post_spacing;
+            while s < half {
+                let side = if rng.random::<bool>() { 1.0 } else { -1.0 };
+                let (px, py) = wall(s, side);
+                lms.push(post(px, py));
+                lms.push(post(self.length - px, self.width - py));
+                s += self.post_spacing * (0.5 + rng.random::<f64>());
+            }
         }
         for f in 0..self.features {
             let frac = [0.35, 0.6, 0.9, 0.15, 0.7][f % 5] + 0.01 * (f / 5) as f64;
@@ -203,13 +275,24 @@ impl LoopWorld {
                 [inc.x, inc.y, inc.theta][i] + var[i].sqrt() * rng.sample::<f64, _>(StandardNormal)
             });
             let mut landmarks = Vec::new();
-            for l in &map.landmarks {
+            let first_feature = map.len() - self.features;
+            for (li, l) in map.landmarks.iter().enumerate() {
                 let Some((z, _, _)) =
                     range_bearing_predict(&truth_pose, l.gaussian.mean[0], l.gaussian.mean[1])
                 else {
                     continue;
                 };
-                if z[0] > self.max_range || z[1].abs() > 0.5 * self.fov {
+                let range = if li >= first_feature {
+                    self.max_range.min(self.feature_range)
+                } else {
+                    self.max_range
+                };
+                let off_axis = if self.sides {
+                    (z[1].abs() - FRAC_PI_2).abs()
+                } else {
+                    z[1].abs()
+                };
+                if z[0] > range || off_axis > 0.5 * self.fov {
                     continue;
                 }
                 if rng.random::<f64>() > self.detection {
@@ -264,6 +347,41 @@ pub struct RtpfExperiment {
     /// The localizer's `resample_threshold` (one-record and skip updates). Default 0.5;
     /// 1.0 resamples at every update, as the paper's filters do.
     pub resample_threshold: f64,
+}
+
+/// The two settings of the experiment.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Setting {
+    /// The paper-like building ([`LoopWorld::building`], [`RtpfExperiment::building`]).
+    Building,
+    /// The small symmetric corridor loop ([`LoopWorld::default`], [`RtpfExperiment::default`]).
+    Corridor,
+}
+
+impl RtpfExperiment {
+    /// The settings of one experiment: the building's are [`RtpfExperiment::building`].
+    pub fn preset(setting: Setting) -> Self {
+        match setting {
+            Setting::Building => Self::building(),
+            Setting::Corridor => Self::default(),
+        }
+    }
+
+    /// The paper-like experiment: the building of [`LoopWorld::building`], 30 seeds, the
+    /// paper's windows 4 and 8 to 12, 2000 samples per update (the budget of one update;
+    /// a window of `k` records spends it on `k` records), 300 records per run (about two
+    /// laps). The budget and the length are what the 2-core machine of this project runs
+    /// for 30 seeds in minutes; the paper used 20,000 samples.
+    pub fn building() -> Self {
+        Self {
+            world: LoopWorld::building(),
+            windows: vec![4, 8, 9, 10, 11, 12],
+            samples: 2000,
+            records: 300,
+            ..Self::default()
+        }
+    }
 }
 
 impl Default for RtpfExperiment {
@@ -622,40 +740,120 @@ pub fn write_outputs(
     let path = dir.join("times.csv");
     std::fs::write(&path, times).map_err(|e| io_err(&path, e))?;
 
-    let speed = speedups(&sums);
-    let mut sp = String::from("window,skip_time_s,rtpf_time_s,speedup_rtpf_over_skip\n");
-    for (k, s, r, x) in &speed {
-        writeln!(sp, "{k},{s:.2},{r:.2},{x:.3}").expect("writing to a String");
+    let speed = speedups(results, end);
+    let mut sp = String::from(
+        "window,skip_time_s,rtpf_time_s,speedup_rtpf_over_skip,speedup_ci95_low,speedup_ci95_high\n",
+    );
+    for x in &speed {
+        writeln!(
+            sp,
+            "{},{:.2},{:.2},{:.3},{:.3},{:.3}",
+            x.window, x.skip_time, x.rtpf_time, x.speedup, x.ci_low, x.ci_high
+        )
+        .expect("writing to a String");
     }
     let path = dir.join("speedup.csv");
     std::fs::write(&path, sp).map_err(|e| io_err(&path, e))?;
 
-    plot(exp, results, &sums, &dir.join("rtpf.png"))?;
+    plot(exp, results, &speed, &dir.join("rtpf.png"))?;
     Ok(sums)
 }
 
-/// (window, skip time, rtpf time, skip / rtpf) for every window with both policies.
-pub fn speedups(sums: &[Summary]) -> Vec<(usize, f64, f64, f64)> {
-    let mut out = Vec::new();
-    for s in sums.iter().filter(|s| s.policy == "skip") {
-        if let Some(r) = sums
-            .iter()
-            .find(|r| r.policy == "rtpf" && r.window == s.window)
-        {
-            out.push((
-                s.window,
-                s.time_mean,
-                r.time_mean,
-                s.time_mean / r.time_mean,
-            ));
+/// Bootstrap resamples of the speedup's confidence interval. Default 10000: the interval's
+/// ends move by less than 0.01 between bootstrap seeds at 30 runs.
+pub const BOOTSTRAP_RESAMPLES: usize = 10_000;
+/// Seed of the bootstrap's random stream (fixed: the same runs give the same interval).
+const BOOTSTRAP_SEED: u64 = 0xB007;
+
+/// RTPF's speedup over skip at one window size.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Speedup {
+    pub window: usize,
+    /// Mean localization times [s].
+    pub skip_time: f64,
+    pub rtpf_time: f64,
+    /// `skip_time / rtpf_time`.
+    pub speedup: f64,
+    /// 95% confidence interval of the speedup: percentile bootstrap over the seeds, the
+    /// runs of both policies with the same seed (same data) kept as a pair, as the paper's
+    /// paired tests over its 30 runs.
+    pub ci_low: f64,
+    pub ci_high: f64,
+}
+
+/// The ratio of mean localization times `a / b` over pairs, with the 2.5 and 97.5
+/// percentiles of its bootstrap distribution (pairs resampled with replacement).
+pub fn ratio_ci(pairs: &[(f64, f64)]) -> (f64, f64, f64) {
+    let ratio = |idx: &mut dyn Iterator<Item = usize>| {
+        let (mut a, mut b) = (0.0, 0.0);
+        for i in idx {
+            a += pairs[i].0;
+            b += pairs[i].1;
         }
+        a / b
+    };
+    let r = ratio(&mut (0..pairs.len()));
+    if pairs.len() < 2 {
+        return (r, r, r);
     }
-    out
+    let mut rng = stream(BOOTSTRAP_SEED, pairs.len() as u64, 0);
+    let n = pairs.len();
+    let mut boot: Vec<f64> = (0..BOOTSTRAP_RESAMPLES)
+        .map(|_| {
+            let idx: Vec<usize> = (0..n).map(|_| rng.random_range(0..n)).collect();
+            ratio(&mut idx.into_iter())
+        })
+        .collect();
+    boot.sort_by(f64::total_cmp);
+    let q = |p: f64| boot[((p * (boot.len() - 1) as f64).round() as usize).min(boot.len() - 1)];
+    (r, q(0.025), q(0.975))
+}
+
+/// RTPF's speedup over skip for every window with both policies, runs paired by seed;
+/// a run that never localized counts at `end_time`.
+pub fn speedups(results: &[RunResult], end_time: f64) -> Vec<Speedup> {
+    let mut windows: Vec<usize> = results
+        .iter()
+        .filter(|r| r.policy == "rtpf")
+        .map(|r| r.window)
+        .collect();
+    windows.sort_unstable();
+    windows.dedup();
+    let time = |r: &RunResult| r.time.unwrap_or(end_time);
+    windows
+        .into_iter()
+        .filter_map(|k| {
+            let pairs: Vec<(f64, f64)> = results
+                .iter()
+                .filter(|r| r.policy == "skip" && r.window == k)
+                .filter_map(|s| {
+                    results
+                        .iter()
+                        .find(|r| r.policy == "rtpf" && r.window == k && r.seed == s.seed)
+                        .map(|r| (time(s), time(r)))
+                })
+                .collect();
+            if pairs.is_empty() {
+                return None;
+            }
+            let (speedup, ci_low, ci_high) = ratio_ci(&pairs);
+            let n = pairs.len() as f64;
+            Some(Speedup {
+                window: k,
+                skip_time: pairs.iter().map(|p| p.0).sum::<f64>() / n,
+                rtpf_time: pairs.iter().map(|p| p.1).sum::<f64>() / n,
+                speedup,
+                ci_low,
+                ci_high,
+            })
+        })
+        .collect()
 }
 
 /// A markdown table: per window size, each policy's mean localization time ± 95% CI
-/// (localized runs / runs), and RTPF's speedup over skip; the baseline in the first row.
-pub fn markdown_table(sums: &[Summary], end_time: f64) -> String {
+/// (localized runs / runs), and RTPF's speedup over skip with its 95% interval; the
+/// baseline in the first row.
+pub fn markdown_table(sums: &[Summary], speed: &[Speedup], end_time: f64) -> String {
     let mut policies: Vec<String> = Vec::new();
     for s in sums.iter().filter(|s| s.policy != "baseline") {
         if !policies.contains(&s.policy) {
@@ -673,7 +871,7 @@ pub fn markdown_table(sums: &[Summary], end_time: f64) -> String {
     for p in &policies {
         let _ = write!(out, " {p} [s] |");
     }
-    let _ = writeln!(out, " rtpf speedup over skip |");
+    let _ = writeln!(out, " rtpf speedup over skip [95% CI] |");
     let _ = write!(out, "|---|");
     for _ in &policies {
         let _ = write!(out, "---|");
@@ -687,7 +885,6 @@ pub fn markdown_table(sums: &[Summary], end_time: f64) -> String {
             " |".repeat(policies.len())
         );
     }
-    let speed = speedups(sums);
     let mut windows: Vec<usize> = sums
         .iter()
         .filter(|s| s.policy != "baseline")
@@ -707,9 +904,13 @@ pub fn markdown_table(sums: &[Summary], end_time: f64) -> String {
                 }
             }
         }
-        match speed.iter().find(|s| s.0 == k) {
+        match speed.iter().find(|s| s.window == k) {
             Some(s) => {
-                let _ = writeln!(out, " {:.2}x |", s.3);
+                let _ = writeln!(
+                    out,
+                    " {:.2}x [{:.2}, {:.2}] |",
+                    s.speedup, s.ci_low, s.ci_high
+                );
             }
             None => {
                 let _ = writeln!(out, " |");
@@ -730,7 +931,7 @@ static FONT: &[u8] = include_bytes!("../assets/DejaVuSans.ttf");
 fn plot(
     exp: &RtpfExperiment,
     results: &[RunResult],
-    sums: &[Summary],
+    speed: &[Speedup],
     path: &Path,
 ) -> Result<(), LocalizeError> {
     use plotters::prelude::*;
@@ -805,8 +1006,12 @@ fn plot(
             .draw()
             .map_err(|x| e(&x))?;
     }
-    let speed = speedups(sums);
-    let smax = speed.iter().map(|s| s.3).fold(1.0f64, f64::max) * 1.2;
+    let smax = speed
+        .iter()
+        .map(|s| s.ci_high)
+        .filter(|x| x.is_finite())
+        .fold(1.0f64, f64::max)
+        * 1.1;
     let kmax = ws[ws.len() - 1] as f64 + 1.0;
     let mut chart = ChartBuilder::on(&panels[3])
         .caption("Speedup of RTPF over skip", ("sans-serif", 22))
@@ -823,7 +1028,7 @@ fn plot(
         .map_err(|x| e(&x))?;
     chart
         .draw_series(LineSeries::new(
-            speed.iter().map(|s| (s.0 as f64, s.3)),
+            speed.iter().map(|s| (s.window as f64, s.speedup)),
             BLUE.stroke_width(2),
         ))
         .map_err(|x| e(&x))?;
@@ -831,8 +1036,17 @@ fn plot(
         .draw_series(
             speed
                 .iter()
-                .map(|s| Circle::new((s.0 as f64, s.3), 4, BLUE.filled())),
+                .map(|s| Circle::new((s.window as f64, s.speedup), 4, BLUE.filled())),
         )
+        .map_err(|x| e(&x))?;
+    // The 95% bootstrap interval of each speedup.
+    chart
+        .draw_series(speed.iter().map(|s| {
+            PathElement::new(
+                vec![(s.window as f64, s.ci_low), (s.window as f64, s.ci_high)],
+                BLUE.stroke_width(2),
+            )
+        }))
         .map_err(|x| e(&x))?;
     chart
         .draw_series(LineSeries::new([(0.0, 1.0), (kmax, 1.0)], BLACK.mix(0.5)))
@@ -871,6 +1085,76 @@ mod tests {
             .filter(|p| p.x < -1e-6 || p.x > 24.0 + 1e-6 || p.y < -1e-6 || p.y > 12.0 + 1e-6)
             .count();
         assert_eq!(far, 0);
+    }
+
+    #[test]
+    fn the_building_repeats_its_module_scans_densely_and_shows_features_briefly() {
+        let w = LoopWorld::building();
+        let map = w.map();
+        let copies = (w.perimeter() / w.period) as usize;
+        let posts = map.len() - w.features;
+        assert_eq!(posts % copies, 0, "{posts} posts in {copies} modules");
+        // Along the first side, post i of module c is post i of module 0 moved c modules on.
+        let per = posts / copies;
+        let side = (w.length / w.period) as usize;
+        let mut checked = 0;
+        for c in 1..side {
+            for i in 0..per {
+                let (a, b) = (
+                    map.landmarks[i].gaussian.mean,
+                    map.landmarks[c * per + i].gaussian.mean,
+                );
+                if a[0] + c as f64 * w.period < w.length {
+                    assert!(
+                        (b[0] - a[0] - c as f64 * w.period).abs() < 1e-9
+                            && (b[1] - a[1]).abs() < 1e-9,
+                        "module {c} post {i}: {a:?} {b:?}"
+                    );
+                    checked += 1;
+                }
+            }
+        }
+        // Module 0 lies on the first side, so its copies 1 and 2 do too: all are checked.
+        assert_eq!(checked, (side - 1) * per);
+        let run = w.simulate(5, 300, &RtpfExperiment::building().motion_noise);
+        let readings: usize = run.records.iter().map(|r| r.landmarks.len()).sum();
+        let mean = readings as f64 / run.records.len() as f64;
+        println!("{mean:.1} readings per record");
+        assert!(mean > 8.0, "{mean} readings per record");
+        // A distinguishing post, seen: the records within 0.9 m of it, at most 4 in a row.
+        let features = &map.landmarks[posts..];
+        let mut longest = 0;
+        let mut current = 0;
+        let mut sightings = 0;
+        for p in &run.truth {
+            let near = features.iter().any(|f| {
+                (f.gaussian.mean[0] - p.x).hypot(f.gaussian.mean[1] - p.y) <= w.feature_range
+            });
+            current = if near { current + 1 } else { 0 };
+            sightings += usize::from(near);
+            longest = longest.max(current);
+        }
+        assert!(
+            sightings > 0 && longest <= 4,
+            "{sightings} records near a feature, {longest} in a row"
+        );
+    }
+
+    #[test]
+    fn the_speedup_interval_holds_the_ratio_and_narrows_with_agreement() {
+        let noisy: Vec<(f64, f64)> = (0..30)
+            .map(|i| (100.0 + (i % 7) as f64 * 20.0, 50.0 + (i % 5) as f64 * 15.0))
+            .collect();
+        let (r, lo, hi) = ratio_ci(&noisy);
+        let exact = noisy.iter().map(|p| p.0).sum::<f64>() / noisy.iter().map(|p| p.1).sum::<f64>();
+        assert!((r - exact).abs() < 1e-12);
+        assert!(lo < r && r < hi, "{lo} {r} {hi}");
+        // Every pair at the same ratio: no spread.
+        let same: Vec<(f64, f64)> = (1..31).map(|i| (2.0 * i as f64, i as f64)).collect();
+        let (r, lo, hi) = ratio_ci(&same);
+        assert!((r - 2.0).abs() < 1e-12 && (hi - lo).abs() < 1e-12);
+        // Same runs, same interval.
+        assert_eq!(ratio_ci(&noisy), ratio_ci(&noisy));
     }
 
     #[test]

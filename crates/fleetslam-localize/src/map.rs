@@ -163,6 +163,99 @@ impl Default for LikelihoodParams {
     }
 }
 
+/// Maps with at least this many range-bearing landmarks get a grid index for the
+/// maximum-likelihood association of anonymous readings; smaller maps are scanned whole
+/// (cheaper than the index's bookkeeping).
+pub const INDEX_MIN_LANDMARKS: usize = 64;
+/// Cell size of the landmark index [m]. Smaller cells hold fewer landmarks each but a
+/// reading's search disc (a few metres at long range) covers more of them.
+pub const INDEX_CELL: f64 = 1.0;
+
+/// A uniform grid over the landmarks' positions, each cell listing its landmarks (in map
+/// order), for the association of anonymous range-bearing readings: only landmarks near
+/// the point a reading predicts can beat the likelihood floor.
+#[derive(Debug, Clone)]
+struct LandmarkIndex {
+    min: [f64; 2],
+    nx: usize,
+    ny: usize,
+    /// `items[start[c]..start[c + 1]]`: the landmarks of cell `c = cx + cy · nx`.
+    start: Vec<u32>,
+    items: Vec<u32>,
+    /// The largest trace of a landmark covariance.
+    max_trace: f64,
+}
+
+impl LandmarkIndex {
+    fn new(map: &LandmarkSet) -> Option<Self> {
+        let ext = map.extent(0.0)?;
+        let nx = ((ext.max[0] - ext.min[0]) / INDEX_CELL).floor() as usize + 1;
+        let ny = ((ext.max[1] - ext.min[1]) / INDEX_CELL).floor() as usize + 1;
+        let cell_of = |l: &MapLandmark| {
+            let cx = ((l.gaussian.mean[0] - ext.min[0]) / INDEX_CELL).floor() as usize;
+            let cy = ((l.gaussian.mean[1] - ext.min[1]) / INDEX_CELL).floor() as usize;
+            cx.min(nx - 1) + cy.min(ny - 1) * nx
+        };
+        let mut count = vec![0u32; nx * ny + 1];
+        for l in &map.landmarks {
+            count[cell_of(l) + 1] += 1;
+        }
+        for c in 1..count.len() {
+            count[c] += count[c - 1];
+        }
+        let start = count.clone();
+        let mut fill = count;
+        let mut items = vec![0u32; map.len()];
+        for (i, l) in map.landmarks.iter().enumerate() {
+            let c = cell_of(l);
+            items[fill[c] as usize] = i as u32;
+            fill[c] += 1;
+        }
+        let max_trace = map
+            .landmarks
+            .iter()
+            .map(|l| l.gaussian.cov[0] + l.gaussian.cov[3] + l.gaussian.cov[5])
+            .fold(0.0, f64::max);
+        Some(Self {
+            min: ext.min,
+            nx,
+            ny,
+            start,
+            items,
+            max_trace,
+        })
+    }
+
+    /// The landmarks of the cells that meet the square of half-side `r` around `p`, in map
+    /// order within each cell.
+    fn near(&self, p: [f64; 2], r: f64) -> impl Iterator<Item = usize> + '_ {
+        let span = |v: f64, min: f64, n: usize| {
+            let lo = ((v - r - min) / INDEX_CELL).floor();
+            let hi = ((v + r - min) / INDEX_CELL).floor();
+            let lo = lo.max(0.0);
+            let hi = hi.min(n as f64 - 1.0);
+            if lo > hi || lo.is_nan() || hi.is_nan() {
+                (1usize, 0usize)
+            } else {
+                (lo as usize, hi as usize)
+            }
+        };
+        let (x0, x1) = span(p[0], self.min[0], self.nx);
+        let (y0, y1) = span(p[1], self.min[1], self.ny);
+        (y0..=y1).flat_map(move |cy| {
+            let (a, b) = if x0 <= x1 {
+                (
+                    self.start[x0 + cy * self.nx] as usize,
+                    self.start[x1 + cy * self.nx + 1] as usize,
+                )
+            } else {
+                (0, 0)
+            };
+            self.items[a..b].iter().map(|&i| i as usize)
+        })
+    }
+}
+
 /// The measurement noise matrix and the map, ready to score poses.
 #[derive(Debug, Clone)]
 pub struct Scorer<'a> {
@@ -170,6 +263,7 @@ pub struct Scorer<'a> {
     q2: Matrix2<f64>,
     q3: Matrix3<f64>,
     params: LikelihoodParams,
+    index: Option<LandmarkIndex>,
 }
 
 /// One observation resolved against the map: the landmark when its id is known.
@@ -183,12 +277,54 @@ pub struct ResolvedObs {
 impl<'a> Scorer<'a> {
     pub fn new(map: &'a LandmarkSet, noise: &SensorNoise, params: LikelihoodParams) -> Self {
         let s2 = params.noise_scale * params.noise_scale;
+        let index = if map.kind == LandmarkKind::RangeBearing2d && map.len() >= INDEX_MIN_LANDMARKS
+        {
+            LandmarkIndex::new(map)
+        } else {
+            None
+        };
         Self {
             map,
             q2: noise.q2() * s2,
             q3: noise.q3() * s2,
             params,
+            index,
         }
+    }
+
+    /// A scorer that scans every landmark for each anonymous reading (no index): the
+    /// reference the index is tested against.
+    pub fn without_index(
+        map: &'a LandmarkSet,
+        noise: &SensorNoise,
+        params: LikelihoodParams,
+    ) -> Self {
+        Self {
+            index: None,
+            ..Self::new(map, noise, params)
+        }
+    }
+
+    /// The best landmark term of an anonymous range-bearing reading, over the landmarks
+    /// near the point it predicts. A landmark whose squared Mahalanobis distance is below
+    /// the outlier bound `b` has `|Δr| ≤ √(b S_rr)` and `|Δφ| ≤ √(b S_φφ)` (each squared
+    /// component over its variance bounds the whole form), with `S_rr ≤ tr Σ + Q_rr` and
+    /// `r S_φφ^½ ≤ √(tr Σ + r² Q_φφ)`, so it lies within `|Δr| + r|Δφ|` of that point. The
+    /// landmarks further away score below the floor and cannot change the result, which is
+    /// bit for bit that of the whole scan.
+    fn indexed_best(&self, index: &LandmarkIndex, pose: &Pose2, z: &[f64; 3]) -> Option<f64> {
+        let b = self.params.outlier_mahalanobis2;
+        let dr = (b * (index.max_trace + self.q2[(0, 0)])).sqrt();
+        let rmax = z[0].max(0.0) + dr;
+        let radius = (dr + (b * (index.max_trace + rmax * rmax * self.q2[(1, 1)])).sqrt())
+            * (1.0 + 1e-9)
+            + 1e-9;
+        let a = pose.theta + z[1];
+        let p = [pose.x + z[0] * a.cos(), pose.y + z[0] * a.sin()];
+        index
+            .near(p, radius)
+            .filter_map(|i| self.landmark_ll(pose, z, &self.map.landmarks[i].gaussian))
+            .reduce(f64::max)
     }
 
     pub fn map(&self) -> &LandmarkSet {
@@ -273,12 +409,15 @@ impl<'a> Scorer<'a> {
         let floor = self.floor();
         let best = match o.landmark {
             Some(i) => self.landmark_ll(pose, &o.z, &self.map.landmarks[i].gaussian),
-            None => self
-                .map
-                .landmarks
-                .iter()
-                .filter_map(|l| self.landmark_ll(pose, &o.z, &l.gaussian))
-                .reduce(f64::max),
+            None => match &self.index {
+                Some(index) => self.indexed_best(index, pose, &o.z),
+                None => self
+                    .map
+                    .landmarks
+                    .iter()
+                    .filter_map(|l| self.landmark_ll(pose, &o.z, &l.gaussian))
+                    .reduce(f64::max),
+            },
         };
         best.map_or(floor, |b| b.max(floor))
     }
@@ -377,6 +516,52 @@ mod tests {
             },
         );
         assert_eq!(ml, by_id);
+    }
+
+    #[test]
+    fn the_landmark_index_scores_anonymous_readings_as_the_whole_scan() {
+        use fleetslam_core::rng::stream;
+        use rand::Rng;
+        // 300 landmarks over 30 m x 10 m, some vague; readings near and far, poses anywhere.
+        let mut rng = stream(11, 0, 0);
+        let landmarks = (0..300)
+            .map(|i| {
+                let v = if i % 7 == 0 { 0.3 } else { 1e-4 };
+                MapLandmark {
+                    id: None,
+                    gaussian: LandmarkGaussian {
+                        mean: [rng.random::<f64>() * 30.0, rng.random::<f64>() * 10.0, 0.0],
+                        cov: [v, 0.0, 0.0, v, 0.0, v],
+                    },
+                }
+            })
+            .collect();
+        let map = LandmarkSet::new(LandmarkKind::RangeBearing2d, landmarks).unwrap();
+        let params = LikelihoodParams::default();
+        let indexed = Scorer::new(&map, &SensorNoise::default(), params);
+        assert!(indexed.index.is_some());
+        let scan = Scorer::without_index(&map, &SensorNoise::default(), params);
+        let mut above_floor = 0;
+        for _ in 0..5000 {
+            let pose = Pose2::new(
+                rng.random::<f64>() * 36.0 - 3.0,
+                rng.random::<f64>() * 16.0 - 3.0,
+                rng.random::<f64>() * 6.3 - 3.15,
+            );
+            let o = ResolvedObs {
+                z: [
+                    rng.random::<f64>() * 6.0,
+                    rng.random::<f64>() * 6.3 - 3.15,
+                    0.0,
+                ],
+                landmark: None,
+            };
+            let (a, b) = (indexed.obs_ll(&pose, &o), scan.obs_ll(&pose, &o));
+            assert_eq!(a.to_bits(), b.to_bits(), "{pose:?} {o:?}");
+            above_floor += usize::from(a > scan.floor());
+        }
+        // The test means something only if many readings find a landmark.
+        assert!(above_floor > 500, "{above_floor} readings above the floor");
     }
 
     #[test]

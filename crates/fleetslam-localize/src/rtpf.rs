@@ -46,6 +46,10 @@ pub struct RtpfParams {
     pub group_cell: f64,
     /// Cell size of the grouping grid in heading [rad]. Default 30° (0.5236).
     pub group_cell_theta: f64,
+    /// Halve a gradient step until the criterion falls (Armijo's test). Default true: the
+    /// criterion never rises. False takes every step at `step_size` whatever it does to
+    /// the criterion (the behaviour before issue 17, kept for the ablation).
+    pub backtracking: bool,
 }
 
 impl Default for RtpfParams {
@@ -56,6 +60,7 @@ impl Default for RtpfParams {
             trajectories: 0,
             group_cell: 0.5,
             group_cell_theta: 30f64.to_radians(),
+            backtracking: true,
         }
     }
 }
@@ -218,17 +223,24 @@ pub fn kl_criterion(b: &GroupedBeliefs, alpha: &[f64]) -> f64 {
         .sum()
 }
 
-/// The gradient of eq. 6 without the constant: `gᵢ = Σ_g Belᵢ(g) log(Bel_α(g) / Bel*(g))`.
+/// The exact partial derivatives of [`kl_criterion`] (eq. 6 with the mass floor):
+///
+/// ```text
+/// gᵢ = Σ_g Belᵢ(g) [ ln((Bel_α(g) + f) / (Bel*(g) + f)) + Bel_α(g) / (Bel_α(g) + f) ]
+/// ```
+///
+/// With `f = 0` the bracket's second term is the `+1` of eq. 6: a constant that the
+/// projection onto the simplex removes, so only the logarithm steers the weights.
 pub fn kl_gradient(b: &GroupedBeliefs, alpha: &[f64]) -> Vec<f64> {
-    let logs: Vec<f64> = (0..b.full.len())
+    let terms: Vec<f64> = (0..b.full.len())
         .map(|g| {
             let mix: f64 = alpha.iter().zip(&b.comp).map(|(a, c)| a * c[g]).sum();
-            ((mix + MASS_FLOOR) / (b.full[g] + MASS_FLOOR)).ln()
+            ((mix + MASS_FLOOR) / (b.full[g] + MASS_FLOOR)).ln() + mix / (mix + MASS_FLOOR)
         })
         .collect();
     b.comp
         .iter()
-        .map(|c| c.iter().zip(&logs).map(|(m, l)| m * l).sum())
+        .map(|c| c.iter().zip(&terms).map(|(m, l)| m * l).sum())
         .collect()
 }
 
@@ -260,18 +272,58 @@ pub fn project_to_simplex(v: &[f64]) -> Vec<f64> {
     out
 }
 
-/// Mixture weights by projected gradient descent on the KL criterion, from `αᵢ = 1/k`.
+/// Sufficient-decrease constant of the Armijo test: a step is accepted when the criterion
+/// falls by at least this fraction of the decrease its linearisation predicts.
+const ARMIJO: f64 = 1e-4;
+/// Halvings of the step tried before a gradient step is given up (the weights are then at a
+/// stationary point as far as the estimate can tell): `2^-30` of the step size.
+const MAX_HALVINGS: usize = 30;
+
+/// Mixture weights by projected gradient descent on the KL criterion, from `αᵢ = 1/k`
+/// (paper section 3.2). Each of the `gradient_steps` steps starts at `step_size` and halves
+/// it until the criterion falls enough (Armijo's test on the projected step), so that the
+/// criterion never rises: a fixed step of the size that suits a flat criterion overshoots a
+/// steep one to a vertex of the simplex.
 pub fn optimise_weights(b: &GroupedBeliefs, params: &RtpfParams) -> Vec<f64> {
     let k = b.comp.len();
     let mut alpha = vec![1.0 / k as f64; k];
+    let mut j = kl_criterion(b, &alpha);
     for _ in 0..params.gradient_steps {
         let g = kl_gradient(b, &alpha);
-        let stepped: Vec<f64> = alpha
-            .iter()
-            .zip(&g)
-            .map(|(a, gi)| a - params.step_size * gi)
-            .collect();
-        alpha = project_to_simplex(&stepped);
+        let mut step = params.step_size;
+        let mut accepted = false;
+        for _ in 0..=MAX_HALVINGS {
+            let stepped: Vec<f64> = alpha.iter().zip(&g).map(|(a, gi)| a - step * gi).collect();
+            let cand = project_to_simplex(&stepped);
+            if !params.backtracking {
+                alpha = cand;
+                accepted = true;
+                break;
+            }
+            // The decrease the linearisation predicts, g·(α - α'), is >= 0 for a projection.
+            let predicted: f64 = g
+                .iter()
+                .zip(alpha.iter().zip(&cand))
+                .map(|(gi, (a, c))| gi * (a - c))
+                .sum();
+            if predicted <= 0.0 {
+                break;
+            }
+            let jc = kl_criterion(b, &cand);
+            if jc <= j - ARMIJO * predicted {
+                alpha = cand;
+                j = jc;
+                accepted = true;
+                break;
+            }
+            step *= 0.5;
+        }
+        if !accepted {
+            break;
+        }
+        if !params.backtracking {
+            j = kl_criterion(b, &alpha);
+        }
     }
     alpha
 }
@@ -307,6 +359,193 @@ mod tests {
         ];
         let g = group_by_grid(&pts, 1.0, 0.5);
         assert_eq!(g, vec![0, 0, 1, 0, 1, 2, 3, 4, 4]);
+    }
+
+    /// A converged optimiser: many small steps (the default's 5 steps are for speed).
+    fn converged() -> RtpfParams {
+        RtpfParams {
+            gradient_steps: 2000,
+            step_size: 0.5,
+            ..Default::default()
+        }
+    }
+
+    /// The minimum of the criterion over a grid of the 3-simplex with `n` divisions.
+    fn brute_force_3(b: &GroupedBeliefs, n: usize) -> (Vec<f64>, f64) {
+        let mut best = (vec![], f64::INFINITY);
+        for i in 0..=n {
+            for j in 0..=(n - i) {
+                let a = vec![
+                    i as f64 / n as f64,
+                    j as f64 / n as f64,
+                    (n - i - j) as f64 / n as f64,
+                ];
+                let v = kl_criterion(b, &a);
+                if v < best.1 {
+                    best = (a, v);
+                }
+            }
+        }
+        best
+    }
+
+    fn normalised(v: Vec<f64>) -> Vec<f64> {
+        let s: f64 = v.iter().sum();
+        v.into_iter().map(|x| x / s).collect()
+    }
+
+    /// A 1D corridor of `CELLS` cells of 0.1 m with a uniform prior and three observations:
+    /// two readings of the same place that disagree a little (likelihood peaks at 4.7 m and
+    /// 5.2 m, of different widths, each with a weak echo at the symmetric place 10 m on),
+    /// and an uninformative reading. The beliefs are exact per cell.
+    const CELLS: usize = 200;
+    fn likelihoods(x: f64) -> [f64; 3] {
+        let g = |m: f64, s: f64| (-0.5 * ((x - m) / s).powi(2)).exp();
+        [
+            g(4.7, 0.6) + 0.05 * g(14.7, 0.6) + 1e-3,
+            g(5.2, 0.4) + 0.05 * g(15.2, 0.4) + 1e-3,
+            1.0,
+        ]
+    }
+    fn exact_corridor() -> GroupedBeliefs {
+        let xs: Vec<f64> = (0..CELLS).map(|c| (c as f64 + 0.5) * 0.1).collect();
+        let comp = (0..3)
+            .map(|i| normalised(xs.iter().map(|&x| likelihoods(x)[i]).collect()))
+            .collect();
+        let full = normalised(
+            xs.iter()
+                .map(|&x| likelihoods(x).iter().product())
+                .collect(),
+        );
+        GroupedBeliefs { comp, full }
+    }
+
+    #[test]
+    fn gradient_matches_central_finite_differences() {
+        let b = GroupedBeliefs {
+            comp: vec![
+                vec![0.5, 0.2, 0.2, 0.1, 0.0],
+                vec![0.1, 0.6, 0.1, 0.1, 0.1],
+                vec![0.05, 0.05, 0.3, 0.3, 0.3],
+            ],
+            full: vec![0.3, 0.5, 0.1, 0.05, 0.05],
+        };
+        let h = 1e-6;
+        for alpha in [vec![0.2, 0.5, 0.3], vec![1.0 / 3.0; 3], vec![0.7, 0.1, 0.2]] {
+            let g = kl_gradient(&b, &alpha);
+            for i in 0..3 {
+                let (mut up, mut down) = (alpha.clone(), alpha.clone());
+                up[i] += h;
+                down[i] -= h;
+                let fd = (kl_criterion(&b, &up) - kl_criterion(&b, &down)) / (2.0 * h);
+                assert!(
+                    (fd - g[i]).abs() < 1e-8,
+                    "alpha {alpha:?} i {i}: fd {fd} grad {}",
+                    g[i]
+                );
+            }
+        }
+        let e = exact_corridor();
+        let alpha = [0.25, 0.5, 0.25];
+        let g = kl_gradient(&e, &alpha);
+        for i in 0..3 {
+            let (mut up, mut down) = (alpha.to_vec(), alpha.to_vec());
+            up[i] += h;
+            down[i] -= h;
+            let fd = (kl_criterion(&e, &up) - kl_criterion(&e, &down)) / (2.0 * h);
+            assert!(
+                (fd - g[i]).abs() < 1e-7,
+                "corridor i {i}: fd {fd} grad {}",
+                g[i]
+            );
+        }
+    }
+
+    #[test]
+    fn a_full_belief_that_is_a_mixture_of_the_components_is_recovered() {
+        // Bel* = 0.6 Bel₀ + 0.3 Bel₁ + 0.1 Bel₂ exactly: the optimum is those weights, J = 0.
+        let comp = vec![
+            vec![0.7, 0.2, 0.1, 0.0],
+            vec![0.1, 0.1, 0.4, 0.4],
+            vec![0.25, 0.25, 0.25, 0.25],
+        ];
+        let w = [0.6, 0.3, 0.1];
+        let full = (0..4)
+            .map(|g| (0..3).map(|i| w[i] * comp[i][g]).sum())
+            .collect();
+        let b = GroupedBeliefs { comp, full };
+        assert!(kl_criterion(&b, &w).abs() < 1e-12);
+        let (bf, jbf) = brute_force_3(&b, 100);
+        assert!(
+            bf.iter().zip(&w).all(|(a, b)| (a - b).abs() < 1e-9),
+            "{bf:?}"
+        );
+        assert!(jbf.abs() < 1e-12);
+        let a = optimise_weights(&b, &converged());
+        assert!(a.iter().zip(&w).all(|(a, b)| (a - b).abs() < 2e-3), "{a:?}");
+        // A full belief equal to one component: a vertex.
+        let b1 = GroupedBeliefs {
+            comp: b.comp.clone(),
+            full: b.comp[1].clone(),
+        };
+        let a = optimise_weights(&b1, &converged());
+        assert!(a[1] > 1.0 - 1e-7, "{a:?}");
+    }
+
+    #[test]
+    fn optimiser_reaches_the_brute_force_optimum_of_an_exact_1d_problem() {
+        let b = exact_corridor();
+        let (bf, jbf) = brute_force_3(&b, 400);
+        let a = optimise_weights(&b, &converged());
+        let ja = kl_criterion(&b, &a);
+        println!("brute force {bf:?} J {jbf}; optimiser {a:?} J {ja}");
+        // The optimum is inside the simplex: mostly the sharper reading, a little of the
+        // other (1.5 %), none of the flat one.
+        assert!(bf[0] > 0.01 && bf[0] < 0.02 && bf[2] == 0.0, "{bf:?}");
+        assert!(ja <= jbf + 1e-9, "optimiser J {ja} above the grid's {jbf}");
+        assert!(
+            a.iter().zip(&bf).all(|(x, y)| (x - y).abs() < 2.5e-3),
+            "{a:?} vs {bf:?}"
+        );
+        // The default (5 steps) lowers the criterion from the uniform start, monotonically.
+        let uniform = kl_criterion(&b, &[1.0 / 3.0; 3]);
+        let mut last = uniform;
+        for steps in 1..=5 {
+            let p = RtpfParams {
+                gradient_steps: steps,
+                ..Default::default()
+            };
+            let j = kl_criterion(&b, &optimise_weights(&b, &p));
+            assert!(j <= last, "step {steps}: {j} > {last}");
+            last = j;
+        }
+        println!("uniform J {uniform}, default 5 steps J {last}, optimum {jbf}");
+        assert!(last < uniform);
+    }
+
+    #[test]
+    fn monte_carlo_beliefs_give_the_exact_problems_weights() {
+        // Trajectories drawn from the prior and weighed per observation (section 3.3),
+        // grouped by cell: the estimated weights approach the exact optimum.
+        let exact = optimise_weights(&exact_corridor(), &converged());
+        let m = 20_000;
+        let mut rng = fleetslam_core::rng::stream(7, 0, 0);
+        let xs: Vec<f64> = (0..m)
+            .map(|_| rand::Rng::random::<f64>(&mut rng) * CELLS as f64 * 0.1)
+            .collect();
+        let ll: Vec<Vec<f64>> = (0..3)
+            .map(|i| xs.iter().map(|&x| likelihoods(x)[i].ln()).collect())
+            .collect();
+        let group: Vec<usize> = xs
+            .iter()
+            .map(|x| ((x / 0.1) as usize).min(CELLS - 1))
+            .collect();
+        let est = optimise_weights(&grouped_beliefs(&ll, &group), &converged());
+        println!("exact {exact:?} monte carlo {est:?}");
+        assert!(
+            est.iter().zip(&exact).all(|(a, b)| (a - b).abs() < 0.005),
+            "{est:?} vs {exact:?}"
+        );
     }
 
     #[test]

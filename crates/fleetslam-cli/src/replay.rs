@@ -207,19 +207,16 @@ async fn post_json(
         .with_context(|| format!("POST {url}"))
         .map_err(PostError::Failed)?;
     let status = resp.status();
-    let v: Value = resp.json().await.unwrap_or(Value::Null);
     if !status.is_success() {
-        let e = anyhow::anyhow!(
-            "POST {url}: {status}: {}",
-            v["message"].as_str().unwrap_or(&v.to_string())
-        );
+        let message = server_message(&resp.text().await.unwrap_or_default());
+        let e = anyhow::anyhow!("POST {url}: {status}: {message}");
         return Err(if status.is_server_error() {
             PostError::Failed(e)
         } else {
             PostError::Refused(e)
         });
     }
-    Ok(v)
+    Ok(resp.json().await.unwrap_or(Value::Null))
 }
 
 /// Why one POST of a robot's records failed.
@@ -431,8 +428,8 @@ pub async fn put_truth(
     let resp = req.send().await.with_context(|| format!("PUT {url}"))?;
     if !resp.status().is_success() {
         let status = resp.status();
-        let v: Value = resp.json().await.unwrap_or(Value::Null);
-        anyhow::bail!("PUT {url}: {status}: {}", v["message"]);
+        let message = server_message(&resp.text().await.unwrap_or_default());
+        anyhow::bail!("PUT {url}: {status}: {message}");
     }
     Ok(())
 }

@@ -226,15 +226,21 @@ impl RunChannels {
     /// Makes a robot's channels (so that a live client sees them advertised) without
     /// logging.
     pub fn add_robot(&mut self, robot: &str) {
+        // Called for every pose logged: a robot's channels are made together, once.
+        if self.poses.contains_key(robot) {
+            return;
+        }
         let (ctx, prefix) = (&self.ctx, &self.prefix);
-        self.poses.entry(robot.to_string()).or_insert_with(|| {
+        self.poses.insert(
+            robot.to_string(),
             ctx.channel_builder(format!("{prefix}/robot/{robot}/pose"))
-                .build()
-        });
-        self.particles.entry(robot.to_string()).or_insert_with(|| {
+                .build(),
+        );
+        self.particles.insert(
+            robot.to_string(),
             ctx.channel_builder(format!("{prefix}/robot/{robot}/particles"))
-                .build()
-        });
+                .build(),
+        );
     }
 
     /// A robot's pose at `t`: `{prefix}/robot/<id>/pose` and the `world` → `robot_<id>`

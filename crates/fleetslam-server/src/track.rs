@@ -44,6 +44,14 @@ struct Track {
 }
 
 impl Track {
+    fn from_points(pts: Vec<[f64; 4]>) -> Self {
+        let mut track = Track::default();
+        for p in pts {
+            track.push(p);
+        }
+        track
+    }
+
     fn len(&self) -> usize {
         self.sealed.len() * CHUNK + self.tail.len()
     }
@@ -57,10 +65,18 @@ impl Track {
     }
 
     fn iter(&self) -> impl Iterator<Item = &[f64; 4]> {
-        self.sealed
+        self.iter_from(0)
+    }
+
+    /// The points from index `from` on, without walking the sealed chunks before it (a
+    /// live reader asks for the few newest points many times a second).
+    fn iter_from(&self, from: usize) -> impl Iterator<Item = &[f64; 4]> {
+        let first = (from / CHUNK).min(self.sealed.len());
+        self.sealed[first..]
             .iter()
             .flat_map(|c| c.iter())
             .chain(self.tail.iter())
+            .skip(from - first * CHUNK)
     }
 }
 
@@ -74,9 +90,7 @@ impl TrajectoryLog {
         let mut log = Self::new();
         for (robot, pts) in t {
             if robot == FILTER_TRACK {
-                for p in pts {
-                    log.filter.push(p);
-                }
+                log.filter = Track::from_points(pts);
             } else {
                 log.insert(robot, pts);
             }
@@ -86,11 +100,7 @@ impl TrajectoryLog {
 
     /// Sets a robot's points (replacing any it had).
     pub fn insert(&mut self, robot: String, pts: Vec<[f64; 4]>) {
-        let mut track = Track::default();
-        for p in pts {
-            track.push(p);
-        }
-        self.robots.insert(robot, track);
+        self.robots.insert(robot, Track::from_points(pts));
     }
 
     /// Appends a point to a robot's trajectory (starting it if needed).
@@ -141,7 +151,7 @@ impl TrajectoryLog {
             .chain(std::iter::once((&filter, &self.filter)))
             .filter_map(|(r, t)| {
                 let skip = from.get(r).copied().unwrap_or(0);
-                let pts: Vec<[f64; 4]> = t.iter().skip(skip).copied().collect();
+                let pts: Vec<[f64; 4]> = t.iter_from(skip).copied().collect();
                 (!pts.is_empty()).then(|| (r.clone(), pts))
             })
             .collect()
@@ -215,6 +225,13 @@ mod tests {
         assert_eq!(new["a"], (10..CHUNK + 20).map(pt).collect::<Vec<_>>());
         assert_eq!(new["b"], vec![pt(1)]);
         assert_eq!(log.since(&BTreeMap::new()), log.to_map());
+        // From marks at and past a sealed chunk's edge: what walking from the start skips to.
+        let all = log.to_map()["a"].clone();
+        for from in [CHUNK - 1, CHUNK, CHUNK + 5, all.len(), all.len() + 3] {
+            let mark = BTreeMap::from([("a".to_string(), from), ("b".to_string(), 1)]);
+            let want: Vec<[f64; 4]> = all.iter().skip(from).copied().collect();
+            assert_eq!(log.since(&mark).get("a").cloned().unwrap_or_default(), want);
+        }
     }
 
     /// The filter's series is stored with the tracks (lens, since, from_map) and never read

@@ -452,7 +452,7 @@ impl Driver {
 struct Raw {
     method: http::Method,
     path: &'static str,
-    body: Option<Value>,
+    body: Value,
 }
 
 impl fantoccini::wd::WebDriverCompatibleCommand for Raw {
@@ -469,10 +469,7 @@ impl fantoccini::wd::WebDriverCompatibleCommand for Raw {
     }
 
     fn method_and_body(&self, _: &url::Url) -> (http::Method, Option<String>) {
-        (
-            self.method.clone(),
-            self.body.as_ref().map(Value::to_string),
-        )
+        (self.method.clone(), Some(self.body.to_string()))
     }
 }
 
@@ -502,14 +499,11 @@ impl Browser {
             "--window-size=1440,900".into(),
             format!("--user-data-dir={}", profile.path().display()),
         ];
-        let caps = json!({
+        let caps: fantoccini::wd::Capabilities = serde_json::from_value(json!({
             "browserName": "chrome",
             "goog:chromeOptions": {"binary": chromium, "args": args},
             "goog:loggingPrefs": {"browser": "ALL"},
-        });
-        let Value::Object(caps) = caps else {
-            unreachable!("a JSON object")
-        };
+        }))?;
         // chromedriver speaks plain HTTP on loopback: no TLS connector.
         let connector = hyper_util::client::legacy::connect::HttpConnector::new();
         let client = fantoccini::ClientBuilder::new(connector)
@@ -524,12 +518,7 @@ impl Browser {
     }
 
     async fn raw(&self, method: http::Method, path: &'static str, body: Value) -> Res<Value> {
-        let cmd = Raw {
-            method,
-            path,
-            body: Some(body),
-        };
-        Ok(self.client.issue_cmd(cmd).await?)
+        Ok(self.client.issue_cmd(Raw { method, path, body }).await?)
     }
 
     async fn goto(&self, url: &str) -> Res<()> {

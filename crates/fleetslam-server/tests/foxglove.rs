@@ -4,6 +4,8 @@
 //! and the map while robots post over HTTP; the poses and the last map are the server's own,
 //! value for value, and the run's topics go when it ends.
 
+mod common;
+
 use fleetslam_core::log::Log;
 use fleetslam_data::sim::{SimConfig, simulate};
 use fleetslam_server::config::ServerConfig;
@@ -49,36 +51,8 @@ async fn foxglove_client_receives_poses_filter_and_map_of_a_live_run() {
     .unwrap()
     .log;
     log.sort();
-    let post_json = |url: String, body: Value| {
-        let http = http.clone();
-        async move {
-            let v: Value = http
-                .post(url)
-                .json(&body)
-                .send()
-                .await
-                .unwrap()
-                .json()
-                .await
-                .unwrap();
-            v
-        }
-    };
-    let v = post_json(
-        format!("{base}/v1/runs"),
-        json!({"name": "fox", "header": log.header, "config": {"particles": 30}}),
-    )
-    .await;
-    let run = v["id"].as_str().unwrap().to_string();
-    let mut tokens = BTreeMap::new();
-    for r in &log.header.robots {
-        let v = post_json(
-            format!("{base}/v1/runs/{run}/robots"),
-            json!({"id": r.id, "start": r.start, "t0": r.t0}),
-        )
-        .await;
-        tokens.insert(r.id.clone(), v["token"].as_str().unwrap().to_string());
-    }
+    let (run, tokens) = common::setup_over_http(&http, &base, &log, json!({"particles": 30})).await;
+    let tokens: BTreeMap<String, String> = tokens.into_iter().collect();
     let post = |records: Vec<fleetslam_core::log::Record>| {
         let (http, base, run, tokens) = (http.clone(), base.clone(), run.clone(), tokens.clone());
         async move {

@@ -143,29 +143,8 @@ async fn a_websocket_listener_receives_every_state_change_up_to_the_final_one() 
     let c = reqwest::Client::new();
     let log = sim_log(2, 8.0);
     let n = log.records.len() as u64;
-    let v: Value = c
-        .post(format!("{base}/v1/runs"))
-        .json(&json!({"header": log.header, "config": {"particles": 30, "seed": 2}}))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
-    let run = v["id"].as_str().unwrap().to_string();
-    let mut tokens = Vec::new();
-    for r in &log.header.robots {
-        let v: Value = c
-            .post(format!("{base}/v1/runs/{run}/robots"))
-            .json(&json!({"id": r.id, "start": r.start, "t0": r.t0}))
-            .send()
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
-        tokens.push((r.id.clone(), v["token"].as_str().unwrap().to_string()));
-    }
+    let (run, tokens) =
+        common::setup_over_http(&c, &base, &log, json!({"particles": 30, "seed": 2})).await;
     let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/v1/runs/{run}/live"))
         .await
         .unwrap();

@@ -254,13 +254,11 @@ async fn refused_upgrade(addr: std::net::SocketAddr, run: &str) -> (u16, Value) 
     }
 }
 
-async fn ws_connect(
-    addr: std::net::SocketAddr,
-    run: &str,
-) -> Result<
-    tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>,
-    (u16, Value),
-> {
+/// A client's live websocket.
+type Ws =
+    tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
+
+async fn ws_connect(addr: std::net::SocketAddr, run: &str) -> Result<Ws, (u16, Value)> {
     use futures::StreamExt;
     match tokio_tungstenite::connect_async(format!("ws://{addr}/v1/runs/{run}/live")).await {
         Ok((mut ws, _)) => {
@@ -286,22 +284,28 @@ async fn ws_connect(
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn websocket_connections_are_bounded_per_run_and_in_total() {
+/// A server with `api` over a fresh store, on a loopback port, holding `n` new runs of a
+/// one-robot log: its harness, address, task and run ids.
+async fn serve_runs(
+    api: ApiConfig,
+    n: usize,
+) -> (
+    Harness,
+    std::net::SocketAddr,
+    tokio::task::JoinHandle<()>,
+    Vec<String>,
+) {
     let dir = tempfile::tempdir().unwrap();
     let store = Store::open_default(dir.path()).await.unwrap();
-    let mut api = ApiConfig::default();
-    api.coordinator.ws_max_per_run = 2;
-    api.coordinator.ws_max_total = 3;
     let router = app(AppState::new(store.clone(), api));
     let h = Harness {
         router: router.clone(),
         store,
-        dir: tempfile::tempdir().unwrap(),
+        dir,
     };
     let log = sim_log(1, 2.0);
     let mut runs = Vec::new();
-    for _ in 0..2 {
+    for _ in 0..n {
         let (s, v) = h
             .json("POST", "/v1/runs", None, json!({"header": log.header}))
             .await;
@@ -311,6 +315,33 @@ async fn websocket_connections_are_bounded_per_run_and_in_total() {
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = listener.local_addr().unwrap();
     let server = tokio::spawn(async move { axum::serve(listener, router).await.unwrap() });
+    (h, addr, server, runs)
+}
+
+/// Connects to `run`'s live websocket once a slot is free: up to `tries` attempts,
+/// `pause` apart while the server answers 503.
+async fn connect_when_free(
+    addr: std::net::SocketAddr,
+    run: &str,
+    tries: usize,
+    pause: Duration,
+) -> Option<Ws> {
+    for _ in 0..tries {
+        match ws_connect(addr, run).await {
+            Ok(ws) => return Some(ws),
+            Err((503, _)) => tokio::time::sleep(pause).await,
+            Err(other) => panic!("{other:?}"),
+        }
+    }
+    None
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn websocket_connections_are_bounded_per_run_and_in_total() {
+    let mut api = ApiConfig::default();
+    api.coordinator.ws_max_per_run = 2;
+    api.coordinator.ws_max_total = 3;
+    let (h, addr, server, runs) = serve_runs(api, 2).await;
 
     let a1 = ws_connect(addr, &runs[0]).await.unwrap();
     let _a2 = ws_connect(addr, &runs[0]).await.unwrap();
@@ -334,17 +365,7 @@ async fn websocket_connections_are_bounded_per_run_and_in_total() {
 
     // A closed connection gives its slot back.
     drop(a1);
-    let mut again = None;
-    for _ in 0..100 {
-        match ws_connect(addr, &runs[0]).await {
-            Ok(ws) => {
-                again = Some(ws);
-                break;
-            }
-            Err((503, _)) => tokio::time::sleep(Duration::from_millis(20)).await,
-            Err(other) => panic!("{other:?}"),
-        }
-    }
+    let again = connect_when_free(addr, &runs[0], 100, Duration::from_millis(20)).await;
     assert!(again.is_some(), "the slot of a closed connection came back");
     server.abort();
 }
@@ -355,30 +376,15 @@ async fn websocket_connections_are_bounded_per_run_and_in_total() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn heartbeats_keep_idle_connections_and_drop_silent_clients() {
     use futures::StreamExt;
-    let dir = tempfile::tempdir().unwrap();
-    let store = Store::open_default(dir.path()).await.unwrap();
     let mut api = ApiConfig::default();
     api.coordinator.ws_max_per_run = 1;
     api.coordinator.ws_heartbeat = Duration::from_millis(100);
-    let router = app(AppState::new(store.clone(), api));
-    let h = Harness {
-        router: router.clone(),
-        store,
-        dir: tempfile::tempdir().unwrap(),
-    };
-    let log = sim_log(1, 2.0);
-    let (s, v) = h
-        .json("POST", "/v1/runs", None, json!({"header": log.header}))
-        .await;
-    assert_eq!(s, StatusCode::CREATED, "{v}");
-    let run = v["id"].as_str().unwrap().to_string();
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    let server = tokio::spawn(async move { axum::serve(listener, router).await.unwrap() });
+    let (_h, addr, server, runs) = serve_runs(api, 1).await;
+    let run = &runs[0];
 
     // Read for 10 periods: reading answers the pings, so the connection stays; nothing
     // happens in the run, so heartbeats are all that arrives.
-    let mut ws = ws_connect(addr, &run).await.unwrap();
+    let mut ws = ws_connect(addr, run).await.unwrap();
     let until = tokio::time::Instant::now() + Duration::from_millis(1000);
     let mut beats = 0;
     while let Ok(msg) = tokio::time::timeout_at(until, ws.next()).await {
@@ -397,21 +403,11 @@ async fn heartbeats_keep_idle_connections_and_drop_silent_clients() {
         "{beats} heartbeats in 10 periods"
     );
     // The one slot is taken.
-    assert_eq!(ws_connect(addr, &run).await.unwrap_err().0, 503);
+    assert_eq!(ws_connect(addr, run).await.unwrap_err().0, 503);
 
     // Stop reading: no pong goes back, and after three periods the server lets go.
     let stopped = std::time::Instant::now();
-    let mut again = None;
-    for _ in 0..200 {
-        match ws_connect(addr, &run).await {
-            Ok(w) => {
-                again = Some(w);
-                break;
-            }
-            Err((503, _)) => tokio::time::sleep(Duration::from_millis(10)).await,
-            Err(other) => panic!("{other:?}"),
-        }
-    }
+    let again = connect_when_free(addr, run, 200, Duration::from_millis(10)).await;
     let waited = stopped.elapsed();
     assert!(again.is_some(), "a silent client kept its slot");
     assert!(

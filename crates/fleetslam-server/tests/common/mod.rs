@@ -152,6 +152,37 @@ pub async fn setup(h: &Harness, log: &Log, config: Value) -> (String, Vec<(Strin
     (run, tokens)
 }
 
+/// [`setup`] over real HTTP at `base`: creates a run from the log's header with `config`
+/// and registers its robots; returns (run, tokens).
+pub async fn setup_over_http(
+    c: &reqwest::Client,
+    base: &str,
+    log: &Log,
+    config: Value,
+) -> (String, Vec<(String, String)>) {
+    let post = |url: String, body: Value| async move {
+        let resp = c.post(url).json(&body).send().await.unwrap();
+        assert!(resp.status().is_success(), "{}", resp.status());
+        resp.json::<Value>().await.unwrap()
+    };
+    let v = post(
+        format!("{base}/v1/runs"),
+        json!({"header": log.header, "config": config}),
+    )
+    .await;
+    let run = v["id"].as_str().unwrap().to_string();
+    let mut tokens = Vec::new();
+    for r in &log.header.robots {
+        let v = post(
+            format!("{base}/v1/runs/{run}/robots"),
+            json!({"id": r.id, "start": r.start, "t0": r.t0}),
+        )
+        .await;
+        tokens.push((r.id.clone(), v["token"].as_str().unwrap().to_string()));
+    }
+    (run, tokens)
+}
+
 /// A fresh SQLite store in `dir` holding one run `id` for `log`, with the header's filter
 /// configuration at `particles` and `seed`: the set-up of the tests that drive a
 /// coordinator directly.

@@ -118,6 +118,14 @@ struct RtpfArgs {
     /// Records (seconds) per run (default: the setting's).
     #[arg(long)]
     records: Option<usize>,
+    /// Leave out the baseline runs (every record with the full budget), which cost as much
+    /// as a window of `k` runs of `k` policies: for ablations that do not change it.
+    #[arg(long)]
+    no_baseline: bool,
+    /// Also run RTPF with oracle weights (policy `oracle`: each window's weight on the
+    /// records that saw a distinguishing post), the bound of what the weighting can gain.
+    #[arg(long)]
+    oracle: bool,
     /// A JSON or TOML file with any RtpfExperiment fields over the setting's; flags given
     /// explicitly win.
     #[arg(long)]
@@ -729,10 +737,18 @@ fn cmd_experiment_rtpf(a: RtpfArgs) -> Result<()> {
     if let Some(v) = a.records {
         exp.records = v;
     }
+    if a.no_baseline {
+        exp.baseline = false;
+    }
+    if a.oracle {
+        exp.oracle = true;
+    }
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(a.threads.unwrap_or(0))
         .build()?;
-    let runs = exp.seeds * (1 + exp.windows.len() * exp.policies.len());
+    let runs = exp.seeds
+        * (usize::from(exp.baseline)
+            + exp.windows.len() * (exp.policies.len() + usize::from(exp.oracle)));
     let bar = ProgressBar::new(runs as u64);
     bar.set_style(ProgressStyle::with_template(
         "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} runs (eta {eta})",
@@ -750,6 +766,20 @@ fn cmd_experiment_rtpf(a: RtpfArgs) -> Result<()> {
     println!(
         "{}",
         fleetslam_localize::experiment::markdown_table(&sums, &speed, exp.records as f64)
+    );
+    if exp.oracle {
+        for x in fleetslam_localize::experiment::speedups_of(&results, "oracle", exp.records as f64)
+        {
+            println!(
+                "oracle speedup over skip, window {}: {:.2}x [{:.2}, {:.2}]",
+                x.window, x.speedup, x.ci_low, x.ci_high
+            );
+        }
+        println!();
+    }
+    println!(
+        "{}",
+        fleetslam_localize::experiment::diagnostics_table(&sums)
     );
     Ok(())
 }

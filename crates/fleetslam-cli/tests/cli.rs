@@ -219,12 +219,21 @@ fn experiment_rtpf_writes_its_tables_and_plot() {
         &out.to_string_lossy(),
     ]);
     assert!(printed.contains("rtpf speedup over skip"), "{printed}");
-    for f in ["errors.csv", "times.csv", "speedup.csv", "rtpf.png"] {
+    assert!(printed.contains("lost the true place"), "{printed}");
+    for f in [
+        "errors.csv",
+        "times.csv",
+        "diagnostics.csv",
+        "speedup.csv",
+        "rtpf.png",
+    ] {
         assert!(out.join(f).is_file(), "{f} missing");
     }
     let times = std::fs::read_to_string(out.join("times.csv")).unwrap();
     // The baseline and 4 policies x 2 windows.
     assert_eq!(times.lines().count(), 1 + 1 + 8, "{times}");
+    let diag = std::fs::read_to_string(out.join("diagnostics.csv")).unwrap();
+    assert_eq!(diag.lines().count(), 1 + 1 + 8, "{diag}");
     // One speedup per window, with its bootstrap interval around it.
     let speedup = std::fs::read_to_string(out.join("speedup.csv")).unwrap();
     assert!(speedup.starts_with("window,skip_time_s,rtpf_time_s,speedup_rtpf_over_skip,speedup_ci95_low,speedup_ci95_high\n"), "{speedup}");
@@ -235,6 +244,32 @@ fn experiment_rtpf_writes_its_tables_and_plot() {
     }
     let png = std::fs::read(out.join("rtpf.png")).unwrap();
     assert_eq!(&png[1..4], b"PNG");
+
+    // An ablation without the baseline: only the policies' runs.
+    let lean = dir.path().join("lean");
+    ok(&[
+        "experiment",
+        "rtpf",
+        "--seeds",
+        "2",
+        "--windows",
+        "2",
+        "--policies",
+        "skip",
+        "--samples",
+        "400",
+        "--records",
+        "60",
+        "--no-baseline",
+        "--out",
+        &lean.to_string_lossy(),
+    ]);
+    let times = std::fs::read_to_string(lean.join("times.csv")).unwrap();
+    assert_eq!(times.lines().count(), 1 + 1, "{times}");
+    assert!(
+        times.lines().nth(1).unwrap().starts_with("skip,2,2,"),
+        "{times}"
+    );
 }
 
 #[test]

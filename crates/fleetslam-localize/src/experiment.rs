@@ -150,6 +150,9 @@ pub struct LoopRun {
     pub map: LandmarkSet,
     pub records: Vec<Record>,
     pub truth: Vec<Pose2>,
+    /// Distinguishing posts detected in each record (the readings carry no ids; this is the
+    /// simulator's knowledge, used only by the diagnostics of [`RunResult`]).
+    pub features: Vec<u32>,
 }
 
 impl LoopWorld {
@@ -259,6 +262,7 @@ impl LoopWorld {
             map: map.clone(),
             records: Vec::with_capacity(records),
             truth: Vec::with_capacity(records),
+            features: Vec::with_capacity(records),
         };
         for r in 0..records {
             let inc = if done >= sides[side] {
@@ -275,6 +279,7 @@ impl LoopWorld {
                 [inc.x, inc.y, inc.theta][i] + var[i].sqrt() * rng.sample::<f64, _>(StandardNormal)
             });
             let mut landmarks = Vec::new();
+            let mut features = 0u32;
             let first_feature = map.len() - self.features;
             for (li, l) in map.landmarks.iter().enumerate() {
                 let Some((z, _, _)) =
@@ -298,6 +303,7 @@ impl LoopWorld {
                 if rng.random::<f64>() > self.detection {
                     continue;
                 }
+                features += u32::from(li >= first_feature);
                 let range =
                     (z[0] + SENSOR_NOISE.range * rng.sample::<f64, _>(StandardNormal)).max(0.01);
                 let bearing =
@@ -316,6 +322,7 @@ impl LoopWorld {
                 robots: Vec::new(),
             });
             out.truth.push(truth_pose);
+            out.features.push(features);
         }
         out
     }
@@ -347,6 +354,16 @@ pub struct RtpfExperiment {
     /// The localizer's `resample_threshold` (one-record and skip updates). Default 0.5;
     /// 1.0 resamples at every update, as the paper's filters do.
     pub resample_threshold: f64,
+    /// Run the baseline (every record with the full budget). Default true; an ablation
+    /// that does not change it can leave it out (it costs as much as `k` policies' runs
+    /// at window `k`).
+    pub baseline: bool,
+    /// Also run RTPF with oracle weights (policy `oracle`): each window's mixture weight
+    /// spread evenly over the records in which a distinguishing post was detected (uniform
+    /// when there is none), in place of the optimised weights. Default false. It bounds
+    /// what the weighting can gain: the speedup the weighting would give if it recognised
+    /// the valuable records without error.
+    pub oracle: bool,
 }
 
 /// The two settings of the experiment.
@@ -406,6 +423,8 @@ impl Default for RtpfExperiment {
             },
             rtpf: RtpfParams::default(),
             resample_threshold: 0.5,
+            baseline: true,
+            oracle: false,
         }
     }
 }
@@ -426,6 +445,51 @@ pub struct RunResult {
     pub integrated: u64,
     pub likelihood_evals: u64,
     pub gradient_evals: u64,
+    /// Diagnostics of how the run used the distinguishing posts ([`Diagnostics`]).
+    pub diagnostics: Diagnostics,
+}
+
+/// A sample is at the true place when it is within this distance of the true position
+/// [m] (the paper's 200 cm localization threshold) ...
+pub const TRUE_PLACE_RADIUS: f64 = 2.0;
+/// ... and within this angle of the true heading [rad] (the loop is travelled both ways, so
+/// a sample at the right spot facing the wrong way is at one of the similar places).
+pub const TRUE_PLACE_HEADING: f64 = std::f64::consts::FRAC_PI_4;
+/// The belief has lost the true place when its mass there falls below this.
+pub const LOST_MASS: f64 = 1e-3;
+
+/// What a run did with the distinguishing posts, and whether its belief kept the true place:
+/// the measures that separate the ingredients of RTPF's gain (the simulator knows which
+/// readings came from a distinguishing post; the filter does not).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct Diagnostics {
+    /// Updates whose window held a record in which a distinguishing post was detected.
+    pub feature_windows: u64,
+    /// Of those, the updates that integrated such a record (skip integrates only the newest
+    /// record with readings; the other policies integrate every record).
+    pub feature_integrated: u64,
+    /// Sum over the feature windows of the mixture weight on the sample sets that integrated
+    /// a feature record (the mixtures: `uniform`, `rtpf` and `oracle`; 0 for the others).
+    pub feature_alpha: f64,
+    /// Sums over the updates that integrated a feature record of the belief's mass at the
+    /// true place before (after the previous update) and after the update.
+    pub feature_mass_before: f64,
+    pub feature_mass_after: f64,
+    /// The smallest mass at the true place over the updates before the run localized (over
+    /// the whole run if it never did).
+    pub min_true_mass: f64,
+}
+
+/// The weight of the samples at the true place ([`TRUE_PLACE_RADIUS`], [`TRUE_PLACE_HEADING`]).
+pub fn true_place_mass(poses: &[Pose2], weights: &[f64], truth: &Pose2) -> f64 {
+    poses
+        .iter()
+        .zip(weights)
+        .filter(|(p, _)| {
+            p.distance(truth) <= TRUE_PLACE_RADIUS
+                && wrap_angle(p.theta - truth.theta).abs() <= TRUE_PLACE_HEADING
+        })
+        .fold(0.0, |m, (_, w)| m + w)
 }
 
 /// Mean and 95% confidence half-width (normal approximation).
@@ -482,7 +546,8 @@ impl RtpfExperiment {
         self.motion_noise.validate().map_err(LocalizeError::Config)
     }
 
-    fn models(&self) -> Models {
+    /// The models of the simulated robot (and of its localizer).
+    pub fn models(&self) -> Models {
         Models {
             landmark_kind: LandmarkKind::RangeBearing2d,
             motion_model: MotionModel::Odometry,
@@ -536,7 +601,7 @@ impl RtpfExperiment {
             .collect()
     }
 
-    /// One run.
+    /// One run of a policy (`None`: the baseline).
     pub fn run_one(
         &self,
         sim: &LoopRun,
@@ -544,12 +609,58 @@ impl RtpfExperiment {
         window: usize,
         seed: u64,
     ) -> Result<RunResult, LocalizeError> {
+        self.run_with(sim, policy, window, seed, false)
+    }
+
+    /// One run of RTPF with oracle weights ([`RtpfExperiment::oracle`]).
+    pub fn run_oracle(
+        &self,
+        sim: &LoopRun,
+        window: usize,
+        seed: u64,
+    ) -> Result<RunResult, LocalizeError> {
+        self.run_with(sim, Some(Policy::Rtpf), window, seed, true)
+    }
+
+    fn run_with(
+        &self,
+        sim: &LoopRun,
+        policy: Option<Policy>,
+        window: usize,
+        seed: u64,
+        oracle: bool,
+    ) -> Result<RunResult, LocalizeError> {
         let cfg = self.localize_config(policy.unwrap_or_default(), window);
         let mut loc = Localizer::new(self.models(), cfg, seed.wrapping_mul(1000) + window as u64)?;
-        loc.initialise_with(self.corridor_prior(seed), 0.0)?;
+        let prior = self.corridor_prior(seed);
+        loc.initialise_with(prior.clone(), 0.0)?;
         let mut error = Vec::with_capacity(sim.records.len());
         let mut current = f64::NAN;
-        for r in &sim.records {
+        let mut diag = Diagnostics::default();
+        // (update time, mass at the true place after it), for `min_true_mass`.
+        let mut masses: Vec<(f64, f64)> = Vec::new();
+        // The first update's "before" is the prior's mass around the first true pose.
+        let mut mass = true_place_mass(
+            &prior,
+            &vec![1.0 / prior.len() as f64; prior.len()],
+            &sim.truth[0],
+        );
+        let mut window_start = 0usize;
+        for (i, r) in sim.records.iter().enumerate() {
+            if oracle && window > 1 && (i + 1) % window == 0 {
+                // The window's last record: weigh the records that saw a feature.
+                let seen = &sim.features[i + 1 - window..=i];
+                let count = seen.iter().filter(|f| **f > 0).count();
+                let alpha = seen
+                    .iter()
+                    .map(|f| match count {
+                        0 => 1.0 / window as f64,
+                        c if *f > 0 => 1.0 / c as f64,
+                        _ => 0.0,
+                    })
+                    .collect();
+                loc.set_next_weights(alpha)?;
+            }
             if let Some(rep) = loc.push(r, &sim.map)? {
                 // The belief is at the window's last record, which is this one.
                 let (poses, w) = loc.posterior();
@@ -559,6 +670,39 @@ impl RtpfExperiment {
                     .zip(&w)
                     .map(|(p, w)| w * p.distance(&truth))
                     .sum();
+                let after = true_place_mass(&poses, &w, &truth);
+                let window = window_start..=i;
+                window_start = i + 1;
+                let seen: Vec<bool> = sim.features[window.clone()]
+                    .iter()
+                    .map(|f| *f > 0)
+                    .collect();
+                if seen.iter().any(|s| *s) {
+                    diag.feature_windows += 1;
+                    let integrated = match policy {
+                        Some(Policy::Skip) => sim.records[window]
+                            .iter()
+                            .rposition(|r| !r.landmarks.is_empty())
+                            .is_some_and(|j| seen[j]),
+                        _ => true,
+                    };
+                    if rep.alpha.len() == seen.len() {
+                        diag.feature_alpha += rep
+                            .alpha
+                            .iter()
+                            .zip(&seen)
+                            .filter(|(_, s)| **s)
+                            .map(|(a, _)| a)
+                            .sum::<f64>();
+                    }
+                    if integrated {
+                        diag.feature_integrated += 1;
+                        diag.feature_mass_before += mass;
+                        diag.feature_mass_after += after;
+                    }
+                }
+                mass = after;
+                masses.push((rep.t, after));
             }
             error.push(current);
         }
@@ -570,21 +714,33 @@ impl RtpfExperiment {
         let fill = error.get(first).copied().unwrap_or(f64::NAN);
         error.iter_mut().take(first).for_each(|e| *e = fill);
         let st = loc.stats();
+        let time = localization_time(&error, self.threshold, self.hold_seconds);
+        diag.min_true_mass = masses
+            .iter()
+            .filter(|(t, _)| time.is_none_or(|lt| *t < lt))
+            .map(|(_, m)| *m)
+            .fold(1.0, f64::min);
         Ok(RunResult {
-            policy: policy.map_or("baseline".into(), |p| p.as_str().into()),
+            policy: match policy {
+                _ if oracle => "oracle".into(),
+                None => "baseline".into(),
+                Some(p) => p.as_str().into(),
+            },
             window,
             seed,
-            time: localization_time(&error, self.threshold, self.hold_seconds),
+            time,
             error,
             skipped: st.skipped,
             integrated: st.integrated,
             likelihood_evals: st.likelihood_evals,
             gradient_evals: st.gradient_evals,
+            diagnostics: diag,
         })
     }
 
-    /// Every run: the baseline once per seed, each policy for each window and seed. Runs go
-    /// in parallel; each is deterministic, so the result does not depend on the threads.
+    /// Every run: the baseline once per seed (unless left out), each policy for each window
+    /// and seed. Runs go in parallel; each is deterministic, so the result does not depend
+    /// on the threads.
     pub fn run(
         &self,
         progress: impl Fn(usize, usize) + Sync,
@@ -594,20 +750,27 @@ impl RtpfExperiment {
             .into_par_iter()
             .map(|s| self.world.simulate(s, self.records, &self.motion_noise))
             .collect();
-        let mut jobs: Vec<(Option<Policy>, usize, u64)> =
-            (0..self.seeds as u64).map(|s| (None, 1, s)).collect();
+        // (policy, oracle weights, window, seed)
+        let mut jobs: Vec<(Option<Policy>, bool, usize, u64)> = if self.baseline {
+            (0..self.seeds as u64)
+                .map(|s| (None, false, 1, s))
+                .collect()
+        } else {
+            Vec::new()
+        };
         for &k in &self.windows {
-            for &p in &self.policies {
+            let oracle = self.oracle.then_some((Policy::Rtpf, true));
+            for (p, o) in self.policies.iter().map(|p| (*p, false)).chain(oracle) {
                 for s in 0..self.seeds as u64 {
-                    jobs.push((Some(p), k, s));
+                    jobs.push((Some(p), o, k, s));
                 }
             }
         }
         let total = jobs.len();
         let done = std::sync::atomic::AtomicUsize::new(0);
         jobs.par_iter()
-            .map(|&(p, k, s)| {
-                let r = self.run_one(&sims[s as usize], p, k, s);
+            .map(|&(p, o, k, s)| {
+                let r = self.run_with(&sims[s as usize], p, k, s, o);
                 let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
                 progress(d, total);
                 r
@@ -631,6 +794,18 @@ pub struct Summary {
     pub skipped_per_run: f64,
     /// RTPF's gradient overhead: gradient evaluations / sample-set evaluations.
     pub gradient_overhead: f64,
+    /// Feature windows per run ([`Diagnostics::feature_windows`]).
+    pub feature_windows_per_run: f64,
+    /// The fraction of feature windows whose feature record was integrated.
+    pub feature_integrated: f64,
+    /// Mean mixture weight on the feature records' sets in feature windows (mixture
+    /// policies; NaN for the others).
+    pub feature_alpha: f64,
+    /// Mean mass at the true place before and after an update that integrated a feature.
+    pub feature_mass_before: f64,
+    pub feature_mass_after: f64,
+    /// Runs whose belief lost the true place (mass below [`LOST_MASS`]) before localizing.
+    pub lost: usize,
 }
 
 /// Summaries per (policy, window), the baseline first.
@@ -654,6 +829,11 @@ pub fn summarize(results: &[RunResult], end_time: f64) -> Vec<Summary> {
                 .iter()
                 .map(|r| r.error.iter().sum::<f64>() / r.error.len().max(1) as f64)
                 .collect();
+            let sum = |f: &dyn Fn(&Diagnostics) -> f64| -> f64 {
+                rs.iter().map(|r| f(&r.diagnostics)).sum()
+            };
+            let fw: u64 = rs.iter().map(|r| r.diagnostics.feature_windows).sum();
+            let fi: u64 = rs.iter().map(|r| r.diagnostics.feature_integrated).sum();
             let evals: u64 = rs.iter().map(|r| r.likelihood_evals).sum();
             let grad: u64 = rs.iter().map(|r| r.gradient_evals).sum();
             Summary {
@@ -671,6 +851,19 @@ pub fn summarize(results: &[RunResult], end_time: f64) -> Vec<Summary> {
                 } else {
                     0.0
                 },
+                feature_windows_per_run: fw as f64 / rs.len().max(1) as f64,
+                feature_integrated: fi as f64 / fw as f64,
+                feature_alpha: if ["uniform", "rtpf", "oracle"].contains(&p.as_str()) {
+                    sum(&|d| d.feature_alpha) / fw as f64
+                } else {
+                    f64::NAN
+                },
+                feature_mass_before: sum(&|d| d.feature_mass_before) / fi as f64,
+                feature_mass_after: sum(&|d| d.feature_mass_after) / fi as f64,
+                lost: rs
+                    .iter()
+                    .filter(|r| r.diagnostics.min_true_mass < LOST_MASS)
+                    .count(),
             }
         })
         .collect()
@@ -696,7 +889,9 @@ fn error_curve(results: &[RunResult], policy: &str, window: usize) -> Vec<(f64, 
 }
 
 /// Writes `errors.csv` (mean error per second with CI, per policy and window), `times.csv`
-/// (the summaries), `speedup.csv` and `rtpf.png` into `dir`; returns the summaries.
+/// (the summaries), `diagnostics.csv` (the runs' [`Diagnostics`], summarised),
+/// `speedup.csv` (RTPF over skip; `speedup-oracle.csv` too with the oracle) and `rtpf.png`
+/// into `dir`; returns the summaries.
 pub fn write_outputs(
     exp: &RtpfExperiment,
     results: &[RunResult],
@@ -740,20 +935,53 @@ pub fn write_outputs(
     let path = dir.join("times.csv");
     std::fs::write(&path, times).map_err(|e| io_err(&path, e))?;
 
-    let speed = speedups(results, end);
-    let mut sp = String::from(
-        "window,skip_time_s,rtpf_time_s,speedup_rtpf_over_skip,speedup_ci95_low,speedup_ci95_high\n",
+    let mut diag = String::from(
+        "policy,window,runs,lost,feature_windows_per_run,feature_integrated,feature_alpha,feature_mass_before,feature_mass_after\n",
     );
-    for x in &speed {
+    for s in &sums {
         writeln!(
-            sp,
-            "{},{:.2},{:.2},{:.3},{:.3},{:.3}",
-            x.window, x.skip_time, x.rtpf_time, x.speedup, x.ci_low, x.ci_high
+            diag,
+            "{},{},{},{},{:.2},{:.4},{:.4},{:.4},{:.4}",
+            s.policy,
+            s.window,
+            s.runs,
+            s.lost,
+            s.feature_windows_per_run,
+            s.feature_integrated,
+            s.feature_alpha,
+            s.feature_mass_before,
+            s.feature_mass_after
         )
         .expect("writing to a String");
     }
-    let path = dir.join("speedup.csv");
-    std::fs::write(&path, sp).map_err(|e| io_err(&path, e))?;
+    let path = dir.join("diagnostics.csv");
+    std::fs::write(&path, diag).map_err(|e| io_err(&path, e))?;
+
+    let speed = speedups(results, end);
+    let compared = if exp.oracle {
+        vec!["rtpf", "oracle"]
+    } else {
+        vec!["rtpf"]
+    };
+    for policy in compared {
+        let mut sp = format!(
+            "window,skip_time_s,{policy}_time_s,speedup_{policy}_over_skip,speedup_ci95_low,speedup_ci95_high\n"
+        );
+        for x in &speedups_of(results, policy, end) {
+            writeln!(
+                sp,
+                "{},{:.2},{:.2},{:.3},{:.3},{:.3}",
+                x.window, x.skip_time, x.rtpf_time, x.speedup, x.ci_low, x.ci_high
+            )
+            .expect("writing to a String");
+        }
+        let name = match policy {
+            "rtpf" => "speedup.csv".to_string(),
+            other => format!("speedup-{other}.csv"),
+        };
+        let path = dir.join(name);
+        std::fs::write(&path, sp).map_err(|e| io_err(&path, e))?;
+    }
 
     plot(exp, results, &speed, &dir.join("rtpf.png"))?;
     Ok(sums)
@@ -771,6 +999,8 @@ pub struct Speedup {
     pub window: usize,
     /// Mean localization times [s].
     pub skip_time: f64,
+    /// Mean time of the policy compared with skip (RTPF, or the oracle in
+    /// [`speedups_of`]).
     pub rtpf_time: f64,
     /// `skip_time / rtpf_time`.
     pub speedup: f64,
@@ -812,9 +1042,14 @@ pub fn ratio_ci(pairs: &[(f64, f64)]) -> (f64, f64, f64) {
 /// RTPF's speedup over skip for every window with both policies, runs paired by seed;
 /// a run that never localized counts at `end_time`.
 pub fn speedups(results: &[RunResult], end_time: f64) -> Vec<Speedup> {
+    speedups_of(results, "rtpf", end_time)
+}
+
+/// The speedup over skip of `policy`'s runs (`rtpf`, `oracle`, ...), as [`speedups`].
+pub fn speedups_of(results: &[RunResult], policy: &str, end_time: f64) -> Vec<Speedup> {
     let mut windows: Vec<usize> = results
         .iter()
-        .filter(|r| r.policy == "rtpf")
+        .filter(|r| r.policy == policy)
         .map(|r| r.window)
         .collect();
     windows.sort_unstable();
@@ -829,7 +1064,7 @@ pub fn speedups(results: &[RunResult], end_time: f64) -> Vec<Speedup> {
                 .filter_map(|s| {
                     results
                         .iter()
-                        .find(|r| r.policy == "rtpf" && r.window == k && r.seed == s.seed)
+                        .find(|r| r.policy == policy && r.window == k && r.seed == s.seed)
                         .map(|r| (time(s), time(r)))
                 })
                 .collect();
@@ -924,6 +1159,37 @@ pub fn markdown_table(sums: &[Summary], speed: &[Speedup], end_time: f64) -> Str
     out
 }
 
+/// A markdown table of the runs' [`Diagnostics`] per policy and window: runs that lost the
+/// true place before localizing, feature windows per run, the fraction of them whose
+/// feature record was integrated, the mixture weight on the feature records' sets, and the
+/// mass at the true place before and after an update that integrated a feature.
+pub fn diagnostics_table(sums: &[Summary]) -> String {
+    let mut out = String::from(
+        "| policy | window | lost the true place | feature windows per run | feature integrated | weight on feature sets | true-place mass before -> after a feature |\n|---|---|---|---|---|---|---|\n",
+    );
+    for s in sums {
+        let alpha = if s.feature_alpha.is_nan() {
+            String::new()
+        } else {
+            format!("{:.2}", s.feature_alpha)
+        };
+        let _ = writeln!(
+            out,
+            "| {} | {} | {}/{} | {:.1} | {:.2} | {} | {:.2} -> {:.2} |",
+            s.policy,
+            s.window,
+            s.lost,
+            s.runs,
+            s.feature_windows_per_run,
+            s.feature_integrated,
+            alpha,
+            s.feature_mass_before,
+            s.feature_mass_after
+        );
+    }
+    out
+}
+
 /// DejaVu Sans, compiled in so that plotting needs no system fonts (its licence is in
 /// `assets/DejaVuSans-LICENSE.txt`).
 static FONT: &[u8] = include_bytes!("../assets/DejaVuSans.ttf");
@@ -948,6 +1214,7 @@ fn plot(
     let colors = [BLACK, RED, BLUE, GREEN, MAGENTA];
     let names: Vec<String> = std::iter::once("baseline".to_string())
         .chain(exp.policies.iter().map(|p| p.as_str().to_string()))
+        .chain(exp.oracle.then(|| "oracle".to_string()))
         .collect();
     let ymax = results
         .iter()
@@ -1058,6 +1325,81 @@ fn plot(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_true_place_is_near_the_true_pose_and_faces_its_way() {
+        let truth = Pose2::new(3.0, 1.0, 0.2);
+        let poses = [
+            Pose2::new(3.5, 1.5, 0.3),                                   // at the place
+            Pose2::new(3.0, 1.0, 0.2 + std::f64::consts::PI),            // facing the other way
+            Pose2::new(3.0 + TRUE_PLACE_RADIUS + 0.1, 1.0, 0.2),         // too far
+            Pose2::new(3.0, 1.0 - 1.9, 0.2 - TRUE_PLACE_HEADING + 0.01), // at the edges
+        ];
+        let m = true_place_mass(&poses, &[0.1, 0.2, 0.3, 0.4], &truth);
+        assert!((m - 0.5).abs() < 1e-12, "{m}");
+    }
+
+    #[test]
+    fn the_diagnostics_follow_the_windows_and_the_feature_records() {
+        let k = 4;
+        let exp = RtpfExperiment {
+            samples: 400,
+            records: 120,
+            ..RtpfExperiment::building()
+        };
+        let sim = exp.world.simulate(2, exp.records, &exp.motion_noise);
+        let windows: Vec<&[u32]> = sim.features.chunks(k).collect();
+        let feature_windows = windows.iter().filter(|w| w.iter().any(|f| *f > 0)).count() as u64;
+        assert!(feature_windows >= 2, "{:?}", sim.features);
+        // Uniform: every feature window integrates its features, with weight 1/k per record.
+        let uniform = exp.run_one(&sim, Some(Policy::Uniform), k, 2).unwrap();
+        let d = uniform.diagnostics;
+        assert_eq!(d.feature_windows, feature_windows);
+        assert_eq!(d.feature_integrated, feature_windows);
+        let alpha: f64 = windows
+            .iter()
+            .map(|w| w.iter().filter(|f| **f > 0).count() as f64 / k as f64)
+            .sum();
+        assert!((d.feature_alpha - alpha).abs() < 1e-12, "{d:?} {alpha}");
+        // Skip: only the windows whose newest record with readings saw a feature.
+        let skip = exp.run_one(&sim, Some(Policy::Skip), k, 2).unwrap();
+        let integrated = sim
+            .records
+            .chunks(k)
+            .zip(&windows)
+            .filter(|(rs, fs)| {
+                rs.iter()
+                    .rposition(|r| !r.landmarks.is_empty())
+                    .is_some_and(|j| fs[j] > 0)
+            })
+            .count() as u64;
+        assert!(integrated < feature_windows, "{integrated}");
+        assert_eq!(skip.diagnostics.feature_windows, feature_windows);
+        assert_eq!(skip.diagnostics.feature_integrated, integrated);
+        assert_eq!(skip.diagnostics.feature_alpha, 0.0);
+        // RTPF: the weights on feature sets are between none and all.
+        let rtpf = exp.run_one(&sim, Some(Policy::Rtpf), k, 2).unwrap();
+        let d = rtpf.diagnostics;
+        assert!(d.feature_alpha > 0.0 && d.feature_alpha <= d.feature_windows as f64 + 1e-9);
+        // The oracle puts all the weight on the feature records of every feature window.
+        let oracle = exp.run_oracle(&sim, k, 2).unwrap();
+        assert_eq!(oracle.policy, "oracle");
+        let d = oracle.diagnostics;
+        assert_eq!(d.feature_windows, feature_windows);
+        assert!(
+            (d.feature_alpha - feature_windows as f64).abs() < 1e-9,
+            "{d:?}"
+        );
+        // Masses are fractions; the smallest is at most any update's.
+        for r in [&uniform, &skip, &rtpf, &oracle] {
+            // The records before the first update carry its error.
+            assert!(r.error.iter().all(|e| e.is_finite()), "{:?}", &r.error[..k]);
+            assert_eq!(r.error[0], r.error[k - 1]);
+            let d = r.diagnostics;
+            assert!((0.0..=1.0).contains(&d.min_true_mass), "{d:?}");
+            assert!(d.feature_mass_after <= d.feature_integrated as f64 + 1e-9);
+        }
+    }
 
     #[test]
     fn loop_world_is_symmetric_and_the_robot_stays_on_it() {

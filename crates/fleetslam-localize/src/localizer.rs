@@ -135,6 +135,10 @@ pub struct Localizer {
     window_open_t: f64,
     pending: Vec<Record>,
     alpha: Vec<f64>,
+    /// Mixture weights given for the next mixture update ([`Localizer::set_next_weights`]);
+    /// not part of the state a snapshot keeps.
+    #[serde(skip)]
+    next_weights: Option<Vec<f64>>,
     ess: f64,
     hold: usize,
     converged: bool,
@@ -257,6 +261,7 @@ impl Localizer {
             window_open_t: 0.0,
             pending: Vec::new(),
             alpha: Vec::new(),
+            next_weights: None,
             ess: 0.0,
             hold: 0,
             converged: false,
@@ -565,10 +570,41 @@ impl Localizer {
         out
     }
 
+    /// Gives the mixture weights of the next update of the `rtpf` policy, one per record of
+    /// its (fixed) window, in place of the optimised ones; used by that update only. For
+    /// experiments: an oracle that knows which records carry the valuable readings bounds
+    /// what the weighting can gain (`fleetslam experiment rtpf`, policy `oracle`). Weights
+    /// of the wrong length or that do not form a distribution are refused.
+    pub fn set_next_weights(&mut self, alpha: Vec<f64>) -> Result<(), LocalizeError> {
+        let Window::Fixed { k } = self.config.window else {
+            return Err(LocalizeError::Config(
+                "mixture weights can be given only with a fixed window".into(),
+            ));
+        };
+        if alpha.len() != k {
+            return Err(LocalizeError::Config(format!(
+                "{} mixture weights given for a window of {k} records",
+                alpha.len()
+            )));
+        }
+        let sum: f64 = alpha.iter().sum();
+        if alpha.is_empty()
+            || alpha.iter().any(|a| !(a.is_finite() && *a >= 0.0))
+            || (sum - 1.0).abs() > 1e-9
+        {
+            return Err(LocalizeError::Config(format!(
+                "mixture weights must be non-negative and sum to 1, got {alpha:?}"
+            )));
+        }
+        self.next_weights = Some(alpha);
+        Ok(())
+    }
+
     /// Processes the pending window.
     fn update(&mut self, map: &LandmarkSet) -> Result<UpdateReport, LocalizeError> {
         let records = std::mem::take(&mut self.pending);
         let k = records.len();
+        let given = self.next_weights.take().filter(|a| a.len() == k);
         let scorer = Scorer::new(map, &self.models.sensor_noise, self.config.likelihood);
         let mut last = self.last_t;
         let mut steps = Vec::with_capacity(k);
@@ -672,7 +708,9 @@ impl Localizer {
                     set_logw.push(r.ll);
                 }
                 integrated = observing as u64;
-                alpha = if policy == Policy::Rtpf {
+                alpha = if let Some(given) = given.filter(|_| policy == Policy::Rtpf) {
+                    given
+                } else if policy == Policy::Rtpf {
                     let m = self.config.rtpf.trajectories_for(n, k);
                     let traj = self.run_set(
                         &self.poses,

@@ -241,6 +241,50 @@ fn rtpf_weights_sum_to_one_and_favour_the_informative_observation() {
 }
 
 #[test]
+fn given_mixture_weights_replace_the_optimised_ones_for_one_update() {
+    let map = fixed_map();
+    let (recs, _) = circle_robot("r", [8.0, 8.0], 4.0, 0.3, 6, 0.0, 2);
+    let cfg = LocalizeConfig {
+        max_samples: 600,
+        kld: None,
+        policy: Policy::Rtpf,
+        window: Window::Fixed { k: 3 },
+        ..Default::default()
+    };
+    let mut loc = Localizer::new(models(), cfg.clone(), 3).unwrap();
+    for bad in [vec![0.5, 0.5], vec![0.5, 0.6, -0.1], vec![0.2, 0.2, 0.2]] {
+        let e = loc.set_next_weights(bad.clone()).unwrap_err().to_string();
+        assert!(e.contains("mixture weights"), "{bad:?}: {e}");
+    }
+    loc.set_next_weights(vec![0.0, 1.0, 0.0]).unwrap();
+    let mut reports = Vec::new();
+    for r in &recs {
+        reports.extend(loc.push(r, &map).unwrap());
+    }
+    assert_eq!(reports.len(), 2);
+    assert_eq!(reports[0].alpha, vec![0.0, 1.0, 0.0]);
+    // Without them the first window's weights are the optimised ones.
+    let mut plain = Localizer::new(models(), cfg.clone(), 3).unwrap();
+    let first = recs[..3]
+        .iter()
+        .filter_map(|r| plain.push(r, &map).unwrap())
+        .next()
+        .unwrap();
+    assert_ne!(first.alpha, reports[0].alpha);
+    assert_eq!(first.alpha.len(), 3);
+    // Weights need a fixed window.
+    let budget = LocalizeConfig {
+        window: Window::Budget {
+            samples_per_second: 1000.0,
+            max: 4,
+        },
+        ..cfg
+    };
+    let mut loc = Localizer::new(models(), budget, 3).unwrap();
+    assert!(loc.set_next_weights(vec![1.0]).is_err());
+}
+
+#[test]
 fn skip_counts_what_it_drops_and_budget_windows_follow_record_times() {
     let map = fixed_map();
     let (recs, _) = circle_robot("r", [8.0, 8.0], 4.0, 0.3, 40, 0.0, 3);

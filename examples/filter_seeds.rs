@@ -9,7 +9,7 @@
 //! cargo run --release --example filter_seeds -- clusters [--seeds 1-5] [--particles 200]
 //! cargo run --release --example filter_seeds -- victoria [--seeds 1] [--particles 100] \
 //!     [--duration S] [--dataset DIR]
-//! cargo run --release --example filter_seeds -- speed [--seeds 1]
+//! cargo run --release --example filter_seeds -- speed [--seeds 1] [--particles N]
 //! ```
 //!
 //! `mrclam` runs MRCLAM Dataset 6 (all five robots) once per seed and prints team ATE, RPE
@@ -30,7 +30,8 @@
 //! particle and landmark observation on a simulated log with 6 or more observations per
 //! record (known ids, 100 and 1,000 particles), MRCLAM Dataset 6 with known ids at 1,000
 //! particles as a multiple of real time, and Victoria Park (unknown association, 100
-//! particles); on all the rayon threads (`RAYON_NUM_THREADS` sets them).
+//! particles); on all the rayon threads (`RAYON_NUM_THREADS` sets them). With `--particles
+//! N`, only the simulated log, at N particles (a workload small enough for callgrind).
 
 use fleetslam_core::config::{DeferSampling, FastSlamVersion};
 use fleetslam_core::filter::FastSlam;
@@ -373,7 +374,10 @@ fn main() {
             };
             let sim = simulate(&speed_scenario(seed)).expect("valid simulation");
             let obs: usize = sim.log.records.iter().map(|r| r.landmarks.len()).sum();
-            for particles in [100, 1000] {
+            // `--particles N`: the simulated log alone, at N particles (a small workload for a
+            // profiler such as callgrind).
+            let counts = particles.map_or(vec![100, 1000], |n| vec![n]);
+            for &particles in &counts {
                 let (wall, per_record, per_obs) = timed(&sim.log, particles);
                 println!(
                     "simulated, known ids, {} records, {:.1} observations per record, \
@@ -382,6 +386,9 @@ fn main() {
                     sim.log.records.len(),
                     obs as f64 / sim.log.records.len() as f64,
                 );
+            }
+            if particles.is_some() {
+                return;
             }
             let imp = mrclam(&dataset, false, duration, odometry_delay);
             let (wall, per_record, per_obs) = timed(&imp.log, 1000);

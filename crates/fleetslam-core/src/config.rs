@@ -3,7 +3,6 @@
 use crate::log::{LogHeader, SensorRange};
 use crate::motion::{AckermannParams, MotionModel, MotionNoise};
 use crate::sensor::{LandmarkKind, SensorNoise};
-pub(crate) use crate::stats::LN_2PI;
 use serde::{Deserialize, Serialize};
 
 /// FastSLAM 1.0 (pose sampled from the motion model) or 2.0 (pose sampled from a proposal
@@ -232,10 +231,12 @@ impl AssociationParams {
     }
 
     /// The clutter log density for measurement noise `q` (the covariance of `dim`
-    /// components).
+    /// components): unless set, the sensor noise's Gaussian density at the new-landmark
+    /// threshold.
     pub fn clutter_for(&self, dim: usize, q_logdet: f64) -> f64 {
-        self.clutter_log_density
-            .unwrap_or_else(|| -0.5 * (self.new_landmark_for(dim) + dim as f64 * LN_2PI + q_logdet))
+        self.clutter_log_density.unwrap_or_else(|| {
+            crate::stats::gaussian_log_density(self.new_landmark_for(dim), q_logdet, dim)
+        })
     }
 }
 
@@ -529,6 +530,7 @@ impl FilterConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::stats::LN_2PI;
 
     #[test]
     fn default_is_valid_and_errors_name_fields() {

@@ -15,15 +15,14 @@
 //!
 //! A new landmark is the inverse of the measurement with `Σ = H⁻¹ Q H⁻ᵀ`.
 
-use crate::pose::{Pose2, wrap_angle};
+use crate::pose::Pose2;
 use crate::sensor::{
-    LandmarkKind, SensorNoise, point3_inverse, point3_predict, range_bearing_inverse,
-    range_bearing_predict,
+    LandmarkKind, MeasurementModel, Point3Model, RangeBearingModel, SensorNoise, point3_inverse,
+    range_bearing_inverse,
 };
+use crate::stats::gaussian_log_density;
 use crate::updater::{LandmarkGaussian, LandmarkUpdater, UpdateInput, UpdateNeeds, UpdateOutput};
-use nalgebra::{Matrix2, Matrix3, Vector2, Vector3};
-
-use crate::stats::LN_2PI;
+use nalgebra::{Matrix2, Matrix3, SMatrix};
 
 /// The EKF updater.
 #[derive(Debug, Clone)]
@@ -53,54 +52,31 @@ impl EkfUpdater {
         self
     }
 
+    /// One update in measurement model `M` with noise `q` (the 2D one in 2x2 matrices).
     #[inline(always)]
-    fn update_2d(&self, inp: &UpdateInput, needs: UpdateNeeds) -> UpdateOutput {
+    fn update<const D: usize, M: MeasurementModel<D>>(
+        q: &SMatrix<f64, D, D>,
+        inp: &UpdateInput,
+        needs: UpdateNeeds,
+    ) -> UpdateOutput {
         let prior = &inp.prior;
-        let Some((zhat, h, _)) = range_bearing_predict(&inp.pose, prior.mean[0], prior.mean[1])
-        else {
+        let Some((zhat, h, _)) = M::predict(&inp.pose, &prior.mean) else {
             return UpdateOutput::rejected(prior);
         };
-        let sigma = prior.cov2();
+        let sigma = M::cov(prior);
         let sht = sigma * h.transpose();
-        let s = h * sht + self.q2;
-        let det = s[(0, 0)] * s[(1, 1)] - s[(0, 1)] * s[(1, 0)];
-        if !(det > 0.0 && det.is_finite()) {
-            return UpdateOutput::rejected(prior);
-        }
-        let s_inv = Matrix2::new(s[(1, 1)], -s[(0, 1)], -s[(1, 0)], s[(0, 0)]) / det;
-        let k = sht * s_inv;
-        let nu = Vector2::new(inp.z[0] - zhat[0], wrap_angle(inp.z[1] - zhat[1]));
-        let mean = Vector2::new(prior.mean[0], prior.mean[1]) + k * nu;
-        let ikh = Matrix2::identity() - k * h;
-        let cov = ikh * sigma * ikh.transpose() + k * self.q2 * k.transpose();
-        let posterior = LandmarkGaussian::from_2d([mean[0], mean[1]], &cov);
-        finish(prior, posterior, needs, || {
-            let m2 = nu.dot(&(s_inv * nu));
-            (-0.5 * m2 - LN_2PI - 0.5 * det.ln(), m2)
-        })
-    }
-
-    #[inline(always)]
-    fn update_3d(&self, inp: &UpdateInput, needs: UpdateNeeds) -> UpdateOutput {
-        let prior = &inp.prior;
-        let (zhat, h, _) = point3_predict(&inp.pose, &prior.mean);
-        let sigma = prior.cov3();
-        let sht = sigma * h.transpose();
-        let s = h * sht + self.q3;
-        let Some(chol) = s.cholesky() else {
+        let s = h * sht + q;
+        let Some((s_inv, det)) = M::inverse_det(&s) else {
             return UpdateOutput::rejected(prior);
         };
-        let s_inv = chol.inverse();
-        let det = chol.determinant();
         let k = sht * s_inv;
-        let nu = Vector3::new(inp.z[0], inp.z[1], inp.z[2]) - zhat;
-        let mean = Vector3::from(prior.mean) + k * nu;
-        let ikh = Matrix3::identity() - k * h;
-        let cov = ikh * sigma * ikh.transpose() + k * self.q3 * k.transpose();
-        let posterior = LandmarkGaussian::from_3d([mean[0], mean[1], mean[2]], &cov);
-        finish(prior, posterior, needs, || {
+        let nu = M::innovation(&inp.z, &zhat);
+        let mean = M::mean(prior) + k * nu;
+        let ikh = SMatrix::<f64, D, D>::identity() - k * h;
+        let cov = ikh * sigma * ikh.transpose() + k * q * k.transpose();
+        finish(prior, M::gaussian(&mean, &cov), needs, || {
             let m2 = nu.dot(&(s_inv * nu));
-            (-0.5 * m2 - 1.5 * LN_2PI - 0.5 * det.ln(), m2)
+            (gaussian_log_density(m2, det.ln(), D), m2)
         })
     }
 }
@@ -124,12 +100,12 @@ impl pulp::WithSimd for Batch<'_> {
         match u.kind {
             LandmarkKind::RangeBearing2d => {
                 for (i, o) in self.inputs.iter().zip(self.outputs.iter_mut()) {
-                    *o = u.update_2d(i, needs);
+                    *o = EkfUpdater::update::<2, RangeBearingModel>(&u.q2, i, needs);
                 }
             }
             LandmarkKind::Point3d => {
                 for (i, o) in self.inputs.iter().zip(self.outputs.iter_mut()) {
-                    *o = u.update_3d(i, needs);
+                    *o = EkfUpdater::update::<3, Point3Model>(&u.q3, i, needs);
                 }
             }
         }
@@ -212,6 +188,8 @@ impl LandmarkUpdater for EkfUpdater {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::sensor::range_bearing_predict;
+    use crate::stats::LN_2PI;
     use proptest::prelude::*;
 
     fn noise() -> SensorNoise {

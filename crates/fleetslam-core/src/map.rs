@@ -25,6 +25,9 @@
 //! for k landmarks nearby instead of O(M). The index only changes when a landmark is added,
 //! removed, or moves to another cell (rare once it has converged), and it never changes which
 //! landmarks a caller finds: it is derived from the landmarks and rebuilt when a map is read.
+//! A map that is never searched by place (the filter's maps under known association, where
+//! ids name the landmarks) keeps no index ([`LandmarkMap::without_index`]): its writes then
+//! cost only the trie's path.
 
 use crate::updater::LandmarkGaussian;
 use rpds::HashTrieMapSync;
@@ -128,6 +131,9 @@ pub struct LandmarkMap {
     /// the existence pass lowers the value of every landmark in view on every record, and
     /// writing each into the trie would copy its leaf (after a resample, its whole path).
     pending: Arc<Vec<(u32, f64)>>,
+    /// No spatial index is kept ([`LandmarkMap::without_index`]); `index` stays empty and
+    /// [`LandmarkMap::for_each_near`] visits every landmark.
+    unindexed: bool,
 }
 
 impl PartialEq for LandmarkMap {
@@ -140,6 +146,26 @@ impl PartialEq for LandmarkMap {
 impl LandmarkMap {
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// An empty map that keeps no spatial index: for maps whose landmarks are found by slot
+    /// only. [`LandmarkMap::for_each_near`] still finds the same landmarks, by visiting all.
+    pub fn without_index() -> Self {
+        Self {
+            unindexed: true,
+            ..Self::default()
+        }
+    }
+
+    /// Stops keeping the spatial index (see [`LandmarkMap::without_index`]) and frees it.
+    pub fn drop_index(&mut self) {
+        self.unindexed = true;
+        self.index = Default::default();
+    }
+
+    /// Whether the map keeps a spatial index.
+    pub fn is_indexed(&self) -> bool {
+        !self.unindexed
     }
 
     /// Number of slots (including removed ones).
@@ -242,6 +268,9 @@ impl LandmarkMap {
 
     /// Keeps the index in step with a slot whose landmark changed from `old` to `new`.
     fn reindex(&mut self, slot: usize, old: Option<&Landmark>, new: Option<&Landmark>) {
+        if self.unindexed {
+            return;
+        }
         let (a, b) = (old.map(Place::of), new.map(Place::of));
         if a == b {
             return;
@@ -361,7 +390,8 @@ impl LandmarkMap {
         let span = |v: f64| (cell(v - r), cell(v + r));
         let ((x0, x1), (y0, y1)) = (span(x), span(y));
         let cells = (f64::from(x1) - f64::from(x0) + 1.0) * (f64::from(y1) - f64::from(y0) + 1.0);
-        if !(r.is_finite() && x.is_finite() && y.is_finite())
+        if self.unindexed
+            || !(r.is_finite() && x.is_finite() && y.is_finite())
             || cells * CELL_LOOKUP_COST >= self.live as f64
         {
             self.for_each(f);
@@ -563,8 +593,9 @@ mod tests {
         proptest!(ProptestConfig::with_cases(64), |(
             ops in proptest::collection::vec(op, 1..400),
             queries in proptest::collection::vec(query, 1..20),
+            indexed in any::<bool>(),
         )| {
-            let mut map = LandmarkMap::new();
+            let mut map = if indexed { LandmarkMap::new() } else { LandmarkMap::without_index() };
             let mut copies = Vec::new();
             for (i, (kind, pick, (x, y, var))) in ops.into_iter().enumerate() {
                 let n = map.slots();
@@ -579,6 +610,10 @@ mod tests {
                     copies.push(map.clone());
                 }
             }
+            // An index dropped midway: the map answers by visiting everything.
+            let mut dropped = map.clone();
+            dropped.drop_index();
+            copies.push(dropped);
             copies.push(map);
             for map in &copies {
                 for &(qx, qy, r) in &queries {
@@ -620,6 +655,36 @@ mod tests {
             wide += usize::from(l.gaussian.mean[0] == -500.0)
         });
         assert_eq!(wide, 1);
+    }
+
+    /// A map without an index keeps none through writes, and its queries visit every
+    /// landmark; its contents equal an indexed map's under the same writes.
+    #[test]
+    fn a_map_without_an_index_keeps_none_and_visits_everything() {
+        let (mut plain, mut indexed) = (LandmarkMap::without_index(), LandmarkMap::new());
+        for i in 0..40 {
+            let l = at(i as f64 * 3.0, 0.0, 0.01);
+            plain.push(l);
+            indexed.push(l);
+        }
+        plain.set(5, at(-50.0, 9.0, 0.01));
+        indexed.set(5, at(-50.0, 9.0, 0.01));
+        plain.remove(7);
+        indexed.remove(7);
+        assert_eq!(plain, indexed);
+        assert!(plain.index.is_empty() && !plain.is_indexed());
+        assert!(!indexed.index.is_empty() && indexed.is_indexed());
+        let count = |m: &LandmarkMap| {
+            let mut n = 0;
+            m.for_each_near(0.0, 0.0, 1.0, |_, _| n += 1);
+            n
+        };
+        assert_eq!(count(&plain), 39);
+        // The query's cell, [0, 4) m, holds the landmarks at x = 0 and 3.
+        assert_eq!(count(&indexed), 2);
+        indexed.drop_index();
+        assert!(indexed.index.is_empty());
+        assert_eq!(count(&indexed), 39);
     }
 
     /// The map against a plain vector under random pushes, sets, removes and clones: the

@@ -96,13 +96,21 @@ impl PoseGaussian {
 
 /// Weighted circular/linear mean of poses. Weights need not be normalised.
 pub fn weighted_mean_pose<'a>(items: impl Iterator<Item = (&'a Pose2, f64)>) -> Pose2 {
+    weighted_mean_pose_sc(items.map(|(p, w)| (p, p.theta.sin_cos(), w)))
+}
+
+/// [`weighted_mean_pose`] of poses given with their headings' `(sin θ, cos θ)`, computed
+/// once by the caller.
+pub fn weighted_mean_pose_sc<'a>(
+    items: impl Iterator<Item = (&'a Pose2, (f64, f64), f64)>,
+) -> Pose2 {
     let (mut sw, mut sx, mut sy, mut ss, mut sc) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    for (p, w) in items {
+    for (p, (s, c), w) in items {
         sw += w;
         sx += w * p.x;
         sy += w * p.y;
-        ss += w * p.theta.sin();
-        sc += w * p.theta.cos();
+        ss += w * s;
+        sc += w * c;
     }
     if sw <= 0.0 {
         return Pose2::default();

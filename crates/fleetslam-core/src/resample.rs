@@ -7,6 +7,20 @@ use rand::Rng;
 /// that they serialise); if every weight is impossible the weights are reset to uniform (and
 /// the ESS is N). The filter never produces NaN.
 pub fn normalize_log_weights(log_w: &mut [f64]) -> f64 {
+    normalize_with(log_w, |_| {})
+}
+
+/// [`normalize_log_weights`], also writing each normalised weight `exp(w)` (bit for bit what
+/// `w.exp()` gives afterwards) into `weights`, which is cleared first: the normalisation
+/// computes them for the ESS anyway.
+pub fn normalize_log_weights_keeping(log_w: &mut [f64], weights: &mut Vec<f64>) -> f64 {
+    weights.clear();
+    weights.reserve(log_w.len());
+    normalize_with(log_w, |p| weights.push(p))
+}
+
+#[inline]
+fn normalize_with(log_w: &mut [f64], mut weight: impl FnMut(f64)) -> f64 {
     let n = log_w.len();
     if n == 0 {
         return 0.0;
@@ -18,7 +32,11 @@ pub fn normalize_log_weights(log_w: &mut [f64]) -> f64 {
         .fold(f64::NEG_INFINITY, f64::max);
     if !max.is_finite() {
         let u = -(n as f64).ln();
-        log_w.iter_mut().for_each(|w| *w = u);
+        let p = u.exp();
+        log_w.iter_mut().for_each(|w| {
+            *w = u;
+            weight(p);
+        });
         return n as f64;
     }
     let sum: f64 = log_w
@@ -34,6 +52,7 @@ pub fn normalize_log_weights(log_w: &mut [f64]) -> f64 {
             f64::MIN
         };
         let p = w.exp();
+        weight(p);
         sq += p * p;
     }
     1.0 / sq
@@ -99,6 +118,27 @@ mod tests {
             let idx = systematic(&w, &mut crate::rng::stream(1, 2, 3));
             prop_assert_eq!(idx.len(), w.len());
             prop_assert!(idx.windows(2).all(|p| p[0] <= p[1]));
+        }
+
+        /// The kept weights are `exp` of the normalised log-weights, bit for bit, and the
+        /// log-weights and ESS are those of `normalize_log_weights`; impossible weights too.
+        #[test]
+        fn kept_weights_are_the_exp_of_the_normalised_ones(
+            ws in proptest::collection::vec(prop_oneof![
+                8 => -1e3f64..1e3,
+                1 => Just(f64::NEG_INFINITY),
+                1 => Just(f64::NAN),
+            ], 1..200),
+        ) {
+            let (mut a, mut b) = (ws.clone(), ws.clone());
+            let mut kept = vec![7.0; 3];
+            let ess = normalize_log_weights_keeping(&mut a, &mut kept);
+            prop_assert_eq!(ess.to_bits(), normalize_log_weights(&mut b).to_bits());
+            prop_assert_eq!(kept.len(), a.len());
+            for ((w, k), v) in a.iter().zip(&kept).zip(&b) {
+                prop_assert_eq!(w.to_bits(), v.to_bits());
+                prop_assert_eq!(k.to_bits(), w.exp().to_bits());
+            }
         }
     }
 }

@@ -5,9 +5,16 @@
 //! `[dx, dy, dz]` (robot frame, x forward, y left, z up) for points, so that batches of
 //! updates are plain arrays whatever the kind. Landmark means are `[x, y, z]` with `z = 0`
 //! in 2D.
+//!
+//! [`MeasurementModel`] gives each kind its statically sized math (a 2D measurement stays in
+//! 2x2 matrices): prediction and Jacobians, innovation, noise, the innovation covariance's
+//! inverse and log-determinant. The EKF, the filter's association and proposal, and the
+//! localizer all compute with it, generic over the kind, and weigh with
+//! [`crate::stats::gaussian_log_density`].
 
 use crate::pose::{Pose2, wrap_angle};
-use nalgebra::{Matrix2, Matrix2x3, Matrix3, Vector2, Vector3};
+use crate::updater::LandmarkGaussian;
+use nalgebra::{Matrix2, Matrix2x3, Matrix3, SMatrix, SVector, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 /// The kind of landmark a run maps. One run uses one kind.
@@ -154,6 +161,144 @@ pub fn point3_inverse(pose: &Pose2, z: &[f64; 3]) -> [f64; 3] {
     ]
 }
 
+/// The measurement model of one landmark kind, in matrices of its own dimension `D` (2 for
+/// range-bearing, 3 for points). Code generic over it is compiled once per kind; the run's
+/// kind picks the instance once per step, not once per observation.
+pub trait MeasurementModel<const D: usize> {
+    /// The kind this model serves.
+    const KIND: LandmarkKind;
+
+    /// The predicted measurement `ẑ = h(x, m)` of landmark mean `m` from `pose`, with the
+    /// Jacobians with respect to the landmark (`H_m`, D x D) and the pose (`Hₓ`, D x 3).
+    /// `None` where the model is undefined (a range-bearing landmark on the robot).
+    #[allow(clippy::type_complexity)]
+    fn predict(
+        pose: &Pose2,
+        m: &[f64; 3],
+    ) -> Option<(SVector<f64, D>, SMatrix<f64, D, D>, SMatrix<f64, D, 3>)>;
+
+    /// The innovation `z − ẑ` (the bearing wrapped to (−π, π] in 2D).
+    fn innovation(z: &[f64; 3], zhat: &SVector<f64, D>) -> SVector<f64, D>;
+
+    /// The measurement noise covariance `Q`.
+    fn noise(n: &SensorNoise) -> SMatrix<f64, D, D>;
+
+    /// A landmark Gaussian's mean in the model's dimension.
+    fn mean(g: &LandmarkGaussian) -> SVector<f64, D>;
+
+    /// A landmark Gaussian's covariance in the model's dimension.
+    fn cov(g: &LandmarkGaussian) -> SMatrix<f64, D, D>;
+
+    /// A landmark Gaussian from a mean and covariance of the model's dimension (symmetrised).
+    fn gaussian(mean: &SVector<f64, D>, cov: &SMatrix<f64, D, D>) -> LandmarkGaussian;
+
+    /// The inverse and the determinant of an innovation covariance `S`; `None` unless `S` is
+    /// positive definite with a finite determinant. (The determinant, not its logarithm: an
+    /// update that needs no likelihood takes no logarithm.)
+    fn inverse_det(s: &SMatrix<f64, D, D>) -> Option<(SMatrix<f64, D, D>, f64)>;
+}
+
+/// [`LandmarkKind::RangeBearing2d`]'s model: `z = (range, bearing)`, 2x2 throughout.
+#[derive(Debug, Clone, Copy)]
+pub struct RangeBearingModel;
+
+impl MeasurementModel<2> for RangeBearingModel {
+    const KIND: LandmarkKind = LandmarkKind::RangeBearing2d;
+
+    #[inline(always)]
+    fn predict(pose: &Pose2, m: &[f64; 3]) -> Option<(Vector2<f64>, Matrix2<f64>, Matrix2x3<f64>)> {
+        range_bearing_predict(pose, m[0], m[1])
+    }
+
+    #[inline(always)]
+    fn innovation(z: &[f64; 3], zhat: &Vector2<f64>) -> Vector2<f64> {
+        Vector2::new(z[0] - zhat[0], wrap_angle(z[1] - zhat[1]))
+    }
+
+    #[inline(always)]
+    fn noise(n: &SensorNoise) -> Matrix2<f64> {
+        n.q2()
+    }
+
+    #[inline(always)]
+    fn mean(g: &LandmarkGaussian) -> Vector2<f64> {
+        Vector2::new(g.mean[0], g.mean[1])
+    }
+
+    #[inline(always)]
+    fn cov(g: &LandmarkGaussian) -> Matrix2<f64> {
+        g.cov2()
+    }
+
+    #[inline(always)]
+    fn gaussian(mean: &Vector2<f64>, cov: &Matrix2<f64>) -> LandmarkGaussian {
+        LandmarkGaussian::from_2d([mean[0], mean[1]], cov)
+    }
+
+    /// The closed-form 2x2 inverse (positive definite: a positive determinant and a positive
+    /// first diagonal entry).
+    #[inline(always)]
+    fn inverse_det(s: &Matrix2<f64>) -> Option<(Matrix2<f64>, f64)> {
+        let det = s[(0, 0)] * s[(1, 1)] - s[(0, 1)] * s[(1, 0)];
+        if !(det > 0.0 && det.is_finite() && s[(0, 0)] > 0.0) {
+            return None;
+        }
+        let inv = Matrix2::new(
+            s[(1, 1)] / det,
+            -s[(0, 1)] / det,
+            -s[(1, 0)] / det,
+            s[(0, 0)] / det,
+        );
+        Some((inv, det))
+    }
+}
+
+/// [`LandmarkKind::Point3d`]'s model: `z = (dx, dy, dz)` in the robot frame, 3x3.
+#[derive(Debug, Clone, Copy)]
+pub struct Point3Model;
+
+impl MeasurementModel<3> for Point3Model {
+    const KIND: LandmarkKind = LandmarkKind::Point3d;
+
+    #[inline(always)]
+    fn predict(pose: &Pose2, m: &[f64; 3]) -> Option<(Vector3<f64>, Matrix3<f64>, Matrix3<f64>)> {
+        Some(point3_predict(pose, m))
+    }
+
+    #[inline(always)]
+    fn innovation(z: &[f64; 3], zhat: &Vector3<f64>) -> Vector3<f64> {
+        Vector3::new(z[0] - zhat[0], z[1] - zhat[1], z[2] - zhat[2])
+    }
+
+    #[inline(always)]
+    fn noise(n: &SensorNoise) -> Matrix3<f64> {
+        n.q3()
+    }
+
+    #[inline(always)]
+    fn mean(g: &LandmarkGaussian) -> Vector3<f64> {
+        Vector3::from(g.mean)
+    }
+
+    #[inline(always)]
+    fn cov(g: &LandmarkGaussian) -> Matrix3<f64> {
+        g.cov3()
+    }
+
+    #[inline(always)]
+    fn gaussian(mean: &Vector3<f64>, cov: &Matrix3<f64>) -> LandmarkGaussian {
+        LandmarkGaussian::from_3d([mean[0], mean[1], mean[2]], cov)
+    }
+
+    /// Through the Cholesky factor.
+    #[inline(always)]
+    fn inverse_det(s: &Matrix3<f64>) -> Option<(Matrix3<f64>, f64)> {
+        let c = s.cholesky()?;
+        let det = c.determinant();
+        (det > 0.0 && det.is_finite()).then(|| (c.inverse(), det))
+    }
+}
+
 /// `true` when the measurement is finite and physically possible for the kind.
 pub fn validate_measurement(kind: LandmarkKind, z: &[f64]) -> Result<(), String> {
     if z.len() != kind.dim() {
@@ -273,6 +418,49 @@ mod tests {
                 assert!((hx3[(i, j)] - nx3[i][j]).abs() < 1e-5);
             }
         }
+    }
+
+    /// Each model's inverse is the inverse and its determinant the determinant; a covariance
+    /// that is not positive definite has none; a landmark Gaussian survives the model's
+    /// reading and writing; and the models name their kinds.
+    #[test]
+    fn measurement_models_invert_and_round_trip() {
+        fn check<const D: usize, M: MeasurementModel<D>>(s: SMatrix<f64, D, D>, want_det: f64) {
+            let (inv, det) = M::inverse_det(&s).unwrap();
+            assert!((inv * s - SMatrix::<f64, D, D>::identity()).norm() < 1e-12);
+            assert!((det - want_det).abs() < 1e-12 * want_det);
+            assert!(M::inverse_det(&(-s)).is_none());
+            assert!(M::inverse_det(&SMatrix::<f64, D, D>::zeros()).is_none());
+            let g = LandmarkGaussian {
+                mean: [1.0, -2.0, if D == 3 { 0.5 } else { 0.0 }],
+                cov: if D == 3 {
+                    [0.3, 0.01, 0.02, 0.2, 0.03, 0.1]
+                } else {
+                    [0.3, 0.01, 0.0, 0.2, 0.0, 0.0]
+                },
+            };
+            assert_eq!(M::gaussian(&M::mean(&g), &M::cov(&g)), g);
+            assert_eq!(M::KIND.dim(), D);
+        }
+        let s2 = Matrix2::new(0.02, 0.001, 0.001, 0.005);
+        check::<2, RangeBearingModel>(s2, s2.determinant());
+        let s3 = Matrix3::new(0.02, 0.001, 0.0, 0.001, 0.005, 0.002, 0.0, 0.002, 0.03);
+        check::<3, Point3Model>(s3, s3.determinant());
+        // The models predict what the kinds' functions do, and wrap the bearing.
+        let pose = Pose2::new(0.3, -0.7, 2.5);
+        let m = [2.0, 1.5, 0.8];
+        let (z, hm, hx) = RangeBearingModel::predict(&pose, &m).unwrap();
+        assert_eq!(Some((z, hm, hx)), range_bearing_predict(&pose, m[0], m[1]));
+        assert!(RangeBearingModel::predict(&pose, &[0.3, -0.7, 0.0]).is_none());
+        let nu = RangeBearingModel::innovation(
+            &[z[0] + 0.1, z[1] + 2.0 * std::f64::consts::PI, 0.0],
+            &z,
+        );
+        assert!((nu[0] - 0.1).abs() < 1e-12 && nu[1].abs() < 1e-12);
+        assert_eq!(
+            Point3Model::predict(&pose, &m),
+            Some(point3_predict(&pose, &m))
+        );
     }
 
     #[test]

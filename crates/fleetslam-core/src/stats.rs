@@ -6,6 +6,15 @@
 /// updater's likelihoods, the filter's proposal and association, the localizer's weights).
 pub const LN_2PI: f64 = 1.837_877_066_409_345_3;
 
+/// `ln N(ν; 0, S)` of a `dim`-dimensional Gaussian innovation from its squared Mahalanobis
+/// distance `m2 = νᵀ S⁻¹ ν` and `logdet = ln |S|`: `−½ m2 − ½ (dim ln 2π + ln |S|)`. The one
+/// formula of the EKF's and the learned updater's likelihoods, the filter's association,
+/// proposal and sightings, and the localizer's weights.
+#[inline(always)]
+pub fn gaussian_log_density(m2: f64, logdet: f64, dim: usize) -> f64 {
+    -0.5 * m2 - 0.5 * (dim as f64 * LN_2PI + logdet)
+}
+
 /// `ln Γ(a)` for `a = k / 2`, `k >= 1` (exact recursion from Γ(1) = 1 and Γ(½) = √π).
 fn ln_gamma_half(k: u32) -> f64 {
     let mut a = if k.is_multiple_of(2) { 1.0 } else { 0.5 };
@@ -90,6 +99,24 @@ mod tests {
         assert!((chi2_quantile(0.999, 2) - 13.8155).abs() < 1e-4);
         assert!((chi2_quantile(0.999, 3) - 16.2662).abs() < 1e-4);
         assert!((chi2_quantile(0.95, 1) - 3.8415).abs() < 1e-4);
+    }
+
+    #[test]
+    fn gaussian_log_density_is_the_log_of_the_density() {
+        // 1D: N(x; 0, σ²) = exp(−x²/2σ²) / √(2πσ²).
+        let (x, var) = (0.7f64, 0.09f64);
+        let pdf = (-x * x / (2.0 * var)).exp() / (2.0 * std::f64::consts::PI * var).sqrt();
+        assert!((gaussian_log_density(x * x / var, var.ln(), 1) - pdf.ln()).abs() < 1e-13);
+        // Independent components: the 2D and 3D densities are sums of 1D ones.
+        let one = |x: f64, var: f64| gaussian_log_density(x * x / var, var.ln(), 1);
+        let (y, vy, z, vz) = (-0.2f64, 0.01f64, 1.5f64, 4.0f64);
+        let m2 = x * x / var + y * y / vy;
+        let two = gaussian_log_density(m2, (var * vy).ln(), 2);
+        assert!((two - (one(x, var) + one(y, vy))).abs() < 1e-12);
+        let three = gaussian_log_density(m2 + z * z / vz, (var * vy * vz).ln(), 3);
+        assert!((three - (two + one(z, vz))).abs() < 1e-12);
+        // It falls as the Mahalanobis distance grows.
+        assert!(gaussian_log_density(2.0, 0.0, 2) < gaussian_log_density(1.0, 0.0, 2));
     }
 
     #[test]

@@ -25,7 +25,7 @@ use fleetslam_core::updater::{LandmarkGaussian, UpdateInput};
 use nalgebra::{SMatrix, SVector};
 use serde::{Deserialize, Serialize};
 
-use fleetslam_core::stats::LN_2PI;
+use fleetslam_core::stats::gaussian_log_density;
 
 /// How a model's inputs and outputs are laid out. A model trained for one layout can't be run
 /// with another: the updater refuses it.
@@ -215,7 +215,7 @@ impl<const D: usize> Frame<D> {
         let (ll, m2) = if likelihood {
             let det = chol.determinant();
             let m2 = self.nu.dot(&(s_inv * self.nu));
-            let ll = -0.5 * m2 - 0.5 * D as f64 * LN_2PI - 0.5 * det.ln() + self.ll_scale.ln();
+            let ll = gaussian_log_density(m2, det.ln(), D) + self.ll_scale.ln();
             (ll, m2)
         } else {
             (f64::NAN, f64::NAN)

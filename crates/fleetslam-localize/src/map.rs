@@ -20,13 +20,14 @@
 use crate::error::LocalizeError;
 use fleetslam_core::filter::{Estimate, FastSlam};
 use fleetslam_core::log::LandmarkObservation;
-use fleetslam_core::pose::{Pose2, wrap_angle};
-use fleetslam_core::sensor::{LandmarkKind, SensorNoise, point3_predict, range_bearing_predict};
+use fleetslam_core::pose::Pose2;
+use fleetslam_core::sensor::{
+    LandmarkKind, MeasurementModel, Point3Model, RangeBearingModel, SensorNoise, point3_predict,
+};
+use fleetslam_core::stats::gaussian_log_density;
 use fleetslam_core::updater::LandmarkGaussian;
-use nalgebra::{Matrix2, Matrix3, Vector2, Vector3};
+use nalgebra::{Matrix2, Matrix3, SMatrix};
 use serde::{Deserialize, Serialize};
-
-use fleetslam_core::stats::LN_2PI;
 
 /// One landmark of a fixed map.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -364,40 +365,25 @@ impl<'a> Scorer<'a> {
     fn landmark_ll(&self, pose: &Pose2, z: &[f64; 3], l: &LandmarkGaussian) -> Option<f64> {
         let bound = self.params.outlier_mahalanobis2;
         let tr = l.cov[0] + l.cov[3] + l.cov[5];
-        let (m2, logdet, dim) = match self.map.kind {
+        match self.map.kind {
             LandmarkKind::RangeBearing2d => {
                 let r = (l.mean[0] - pose.x).hypot(l.mean[1] - pose.y);
                 let nr = z[0] - r;
                 if nr * nr > bound * (tr + self.q2[(0, 0)]) {
                     return None;
                 }
-                let (zhat, hm, _) = range_bearing_predict(pose, l.mean[0], l.mean[1])?;
-                let s = hm * l.cov2() * hm.transpose() + self.q2;
-                let det = s[(0, 0)] * s[(1, 1)] - s[(0, 1)] * s[(1, 0)];
-                if !(det > 0.0 && det.is_finite()) {
-                    return None;
-                }
-                let nu = Vector2::new(z[0] - zhat[0], wrap_angle(z[1] - zhat[1]));
-                let inv = Matrix2::new(s[(1, 1)], -s[(0, 1)], -s[(1, 0)], s[(0, 0)]) / det;
-                (nu.dot(&(inv * nu)), det.ln(), 2.0)
+                gaussian_ll::<2, RangeBearingModel>(&self.q2, pose, z, l)
             }
             LandmarkKind::Point3d => {
-                let (zhat, hm, _) = point3_predict(pose, &l.mean);
-                let nu = Vector3::new(z[0] - zhat[0], z[1] - zhat[1], z[2] - zhat[2]);
+                let (zhat, _, _) = point3_predict(pose, &l.mean);
+                let nu = Point3Model::innovation(z, &zhat);
                 let qmax = self.q3[(0, 0)].max(self.q3[(1, 1)]).max(self.q3[(2, 2)]);
                 if nu.norm_squared() > bound * (tr + qmax) {
                     return None;
                 }
-                let s = hm * l.cov3() * hm.transpose() + self.q3;
-                let c = s.cholesky()?;
-                let det = c.determinant();
-                if !(det > 0.0 && det.is_finite()) {
-                    return None;
-                }
-                (nu.dot(&c.solve(&nu)), det.ln(), 3.0)
+                gaussian_ll::<3, Point3Model>(&self.q3, pose, z, l)
             }
-        };
-        Some(-0.5 * m2 - 0.5 * (dim * LN_2PI + logdet))
+        }
     }
 
     /// The log-likelihood of one resolved observation from `pose`: `max(log N(z; ẑ, S), f)`
@@ -432,11 +418,27 @@ impl<'a> Scorer<'a> {
     /// noise alone at the outlier boundary, `-b/2 - (d ln 2π + ln det Q)/2`.
     pub fn floor(&self) -> f64 {
         let (dim, logdet) = match self.map.kind {
-            LandmarkKind::RangeBearing2d => (2.0, self.q2.determinant().ln()),
-            LandmarkKind::Point3d => (3.0, self.q3.determinant().ln()),
+            LandmarkKind::RangeBearing2d => (2, self.q2.determinant().ln()),
+            LandmarkKind::Point3d => (3, self.q3.determinant().ln()),
         };
-        -0.5 * self.params.outlier_mahalanobis2 - 0.5 * (dim * LN_2PI + logdet)
+        gaussian_log_density(self.params.outlier_mahalanobis2, logdet, dim)
     }
+}
+
+/// `log N(z; h(x, μ), H_m Σ H_mᵀ + Q)` in measurement model `M`; `None` when the landmark
+/// sits on the robot (no bearing) or the covariance is degenerate.
+#[inline]
+fn gaussian_ll<const D: usize, M: MeasurementModel<D>>(
+    q: &SMatrix<f64, D, D>,
+    pose: &Pose2,
+    z: &[f64; 3],
+    l: &LandmarkGaussian,
+) -> Option<f64> {
+    let (zhat, hm, _) = M::predict(pose, &l.mean)?;
+    let s = hm * M::cov(l) * hm.transpose() + q;
+    let (inv, det) = M::inverse_det(&s)?;
+    let nu = M::innovation(z, &zhat);
+    Some(gaussian_log_density(nu.dot(&(inv * nu)), det.ln(), D))
 }
 
 #[cfg(test)]

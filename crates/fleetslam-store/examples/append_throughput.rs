@@ -1,9 +1,11 @@
-//! Measures acknowledged appends: 5 concurrent writers (robots) post ONE record at a time and
-//! each waits for its acknowledgement (a committed record) before sending the next, as robots
-//! talking to the server do. Prints records per second and the ack latency p50 / p99.
+//! Measures acknowledged appends: 5 concurrent writers (robots) post ONE record at a time (or
+//! `RECORDS_PER_APPEND` at a time, as robots posting arrays and `fleetslam replay --batch`
+//! do) and each waits for its acknowledgement (committed records) before sending the next, as
+//! robots talking to the server do. Prints records per second and the ack latency p50 / p99.
 //!
 //! ```sh
-//! cargo run --release -p fleetslam-store --example append_throughput -- [POSTGRES_URL] [RECORDS_PER_WRITER]
+//! cargo run --release -p fleetslam-store --example append_throughput -- [POSTGRES_URL] \
+//!     [RECORDS_PER_WRITER [RECORDS_PER_APPEND]]
 //! ```
 //!
 //! SQLite is measured in a temporary directory always; PostgreSQL when a URL is given, in a
@@ -22,14 +24,22 @@ type Result<T> = std::result::Result<T, Box<dyn Error + Send + Sync>>;
 async fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let pg_url = args.iter().find(|a| a.contains("://")).cloned();
-    let per_writer: i64 = match args.iter().find(|a| !a.contains("://")) {
+    let mut numbers = args.iter().filter(|a| !a.contains("://"));
+    let per_writer: i64 = match numbers.next() {
         Some(n) => n.parse()?,
         None => 2000,
     };
+    let per_append: i64 = match numbers.next() {
+        Some(n) => n.parse()?,
+        None => 1,
+    };
+    if per_append < 1 {
+        return Err("RECORDS_PER_APPEND must be at least 1".into());
+    }
 
     let dir = tempfile::tempdir()?;
     let store = Store::open_default(dir.path()).await?;
-    measure(&store, per_writer).await?;
+    measure(&store, per_writer, per_append).await?;
     store.close().await;
 
     match pg_url {
@@ -38,7 +48,7 @@ async fn main() -> Result<()> {
             let db = fleetslam_store::admin::create_postgres_database(&url, &name).await?;
             let result = async {
                 let store = Store::open(&db).await?;
-                let r = measure(&store, per_writer).await;
+                let r = measure(&store, per_writer, per_append).await;
                 store.close().await;
                 r
             }
@@ -52,7 +62,7 @@ async fn main() -> Result<()> {
 }
 
 /// Runs the writers against `store` and prints the figures.
-async fn measure(store: &Store, per_writer: i64) -> Result<()> {
+async fn measure(store: &Store, per_writer: i64, per_append: i64) -> Result<()> {
     let run_id = format!("throughput-{}", std::process::id());
     store
         .create_run(&NewRun {
@@ -72,15 +82,19 @@ async fn measure(store: &Store, per_writer: i64) -> Result<()> {
         tasks.push(tokio::spawn(async move {
             let robot = format!("robot-{w}");
             let mut latencies = Vec::with_capacity(per_writer as usize);
-            for seq in 0..per_writer {
-                let rec = NewObservation {
-                    robot_id: robot.clone(),
-                    seq,
-                    t: seq as f64 * 0.05,
-                    body: body.to_owned(),
-                };
+            let mut seq = 0;
+            while seq < per_writer {
+                let recs: Vec<NewObservation> = (seq..(seq + per_append).min(per_writer))
+                    .map(|seq| NewObservation {
+                        robot_id: robot.clone(),
+                        seq,
+                        t: seq as f64 * 0.05,
+                        body: body.to_owned(),
+                    })
+                    .collect();
+                seq += recs.len() as i64;
                 let sent = Instant::now();
-                store.append(&run_id, vec![rec]).await?;
+                store.append(&run_id, recs).await?;
                 latencies.push(sent.elapsed());
             }
             Ok::<_, fleetslam_store::StoreError>(latencies)
@@ -93,14 +107,15 @@ async fn measure(store: &Store, per_writer: i64) -> Result<()> {
     let wall = start.elapsed();
     let stats = store.writer_stats();
     latencies.sort_unstable();
-    let total = latencies.len();
+    let total = WRITERS * per_writer as usize;
     let commits = stats.commits - before.commits;
     println!(
-        "{:8}: {} writers x {} single-record appends: {:.0} acked records/s, ack p50 {:.2} ms, p99 {:.2} ms, \
-         {} commits ({:.1} records/commit)",
+        "{:8}: {} writers x {} records, {} per append: {:.0} acked records/s, ack p50 {:.2} ms, \
+         p99 {:.2} ms, {} commits ({:.1} records/commit)",
         store.backend(),
         WRITERS,
         per_writer,
+        per_append,
         total as f64 / wall.as_secs_f64(),
         ms(percentile(&latencies, 0.50)),
         ms(percentile(&latencies, 0.99)),

@@ -13,7 +13,7 @@
 //! stay exact; they are committed with the transaction and dropped if it fails. If a group
 //! fails, each of its calls is retried alone so that one bad call cannot fail the others.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -76,6 +76,7 @@ pub(crate) fn spawn(pool: Pool, stats: Arc<Stats>) -> mpsc::Sender<Job> {
             pool,
             stats,
             next: HashMap::new(),
+            highest: HashMap::new(),
         }
         .run(rx),
     );
@@ -109,7 +110,13 @@ struct Writer {
     stats: Arc<Stats>,
     /// The next arrival number of each run seen so far.
     next: HashMap<String, i64>,
+    /// The highest seq stored of each robot of the runs in `next` (loaded with it): a record
+    /// above it cannot repeat a stored one, so only the others are looked up.
+    highest: HashMap<String, Highest>,
 }
+
+/// Robot -> the highest seq stored in one run's log.
+type Highest = HashMap<String, i64>;
 
 impl Writer {
     async fn run(mut self, mut rx: mpsc::Receiver<Job>) {
@@ -153,6 +160,7 @@ impl Writer {
     /// Deletes a run's rows, children first, in one transaction.
     async fn delete_run(&mut self, run_id: &str) -> Result<bool, StoreError> {
         self.next.remove(run_id);
+        self.highest.remove(run_id);
         let deleted = with_pool!(&self.pool, pool => {
             let mut tx = pool.begin().await?;
             for table in [
@@ -179,13 +187,14 @@ impl Writer {
         Ok(deleted)
     }
 
-    /// Makes sure the counter of `run_id` is loaded; `NotFound` when the run does not exist.
+    /// Makes sure the counter and the robots' highest seqs of `run_id` are loaded;
+    /// `NotFound` when the run does not exist.
     async fn load_counter(&mut self, run_id: &str) -> Result<(), StoreError> {
-        if self.next.contains_key(run_id) {
+        if self.next.contains_key(run_id) && self.highest.contains_key(run_id) {
             return Ok(());
         }
-        let row = with_pool!(&self.pool, pool => {
-            sqlx::query(
+        let loaded = with_pool!(&self.pool, pool => {
+            let last = sqlx::query(
                 "SELECT (SELECT COALESCE(MAX(arrival), 0) FROM observations WHERE run_id = $1) AS last \
                  FROM runs WHERE id = $1",
             )
@@ -193,11 +202,29 @@ impl Writer {
             .fetch_optional(pool)
             .await?
             .map(|row| row.try_get::<i64, _>("last"))
-            .transpose()?
+            .transpose()?;
+            match last {
+                Some(last) => {
+                    let mut highest = Highest::new();
+                    for row in sqlx::query(
+                        "SELECT robot_id, MAX(seq) AS seq FROM observations WHERE run_id = $1 \
+                         GROUP BY robot_id",
+                    )
+                    .bind(run_id)
+                    .fetch_all(pool)
+                    .await?
+                    {
+                        highest.insert(row.try_get("robot_id")?, row.try_get("seq")?);
+                    }
+                    Some((last, highest))
+                }
+                None => None,
+            }
         });
-        match row {
-            Some(last) => {
+        match loaded {
+            Some((last, highest)) => {
                 self.next.insert(run_id.to_owned(), last + 1);
+                self.highest.insert(run_id.to_owned(), highest);
                 Ok(())
             }
             None => Err(StoreError::NotFound(format!("run {run_id}"))),
@@ -276,18 +303,32 @@ impl Writer {
                 .ok_or_else(|| StoreError::NotFound(format!("run {}", job.run_id)))?;
             next.insert(job.run_id.as_str(), n);
         }
-        let result = write_group(&self.pool, jobs, &mut next).await;
+        let result = write_group(&self.pool, jobs, &mut next, &self.highest).await;
         match result {
             Ok(outcomes) => {
                 self.stats.commits.fetch_add(1, Ordering::Relaxed);
                 for (run, n) in next {
                     self.next.insert(run.to_owned(), n);
                 }
+                for (job, outcome) in jobs.iter().zip(&outcomes) {
+                    let Some(highest) = self.highest.get_mut(job.run_id.as_str()) else {
+                        continue;
+                    };
+                    for item in outcome.items.iter().filter(|i| !i.duplicate) {
+                        match highest.get_mut(&item.robot_id) {
+                            Some(h) => *h = (*h).max(item.seq),
+                            None => {
+                                highest.insert(item.robot_id.clone(), item.seq);
+                            }
+                        }
+                    }
+                }
                 Ok(outcomes)
             }
             Err(e) => {
                 for job in jobs {
                     self.next.remove(&job.run_id);
+                    self.highest.remove(&job.run_id);
                 }
                 Err(e)
             }
@@ -295,55 +336,128 @@ impl Writer {
     }
 }
 
-const INSERT_OBSERVATION: &str = "INSERT INTO observations (run_id, arrival, robot_id, seq, t, body) \
-     VALUES ($1, $2, $3, $4, $5, $6) ON CONFLICT (run_id, robot_id, seq) DO NOTHING";
-const FIND_OBSERVATION: &str =
-    "SELECT arrival FROM observations WHERE run_id = $1 AND robot_id = $2 AND seq = $3";
+/// The most records one `INSERT` of a group writes (6 bound values each: within SQLite's
+/// and PostgreSQL's limits on bound parameters, 32,766 and 65,535).
+const ROWS_PER_INSERT: usize = 1000;
+/// The most `(robot, seq)` keys one look-up of already stored records asks for (2 bound
+/// values each).
+const KEYS_PER_LOOKUP: usize = 1000;
 
-/// The group transaction itself.
+/// The group transaction itself, in a few statements whatever the group's size: one look-up
+/// of the group's records that may already be in the log (repeats of acknowledged ones:
+/// those at or below their robot's highest stored seq, `highest`) per [`KEYS_PER_LOOKUP`]
+/// keys, none when robots post rising seqs, then the new ones in multi-row `INSERT`s of at
+/// most [`ROWS_PER_INSERT`]. A repeat (already stored, or earlier in the same group) keeps its
+/// first arrival; every new record takes its run's next arrival number, in the order of the
+/// calls and of their records. Only this task inserts observations and SQLite's transaction
+/// holds the write lock from its start, so a look-up cannot miss a row that the insert then
+/// meets; should another writer have inserted one anyway (a PostgreSQL run written from two
+/// places), the unique key fails the whole transaction, nothing is acknowledged, and the
+/// retry finds the row as a repeat.
 async fn write_group<'a>(
     pool: &Pool,
     jobs: &'a [AppendJob],
     next: &mut HashMap<&'a str, i64>,
+    highest: &HashMap<String, Highest>,
 ) -> Result<Vec<AppendOutcome>, StoreError> {
+    // Each run's distinct (robot, seq) keys that may already be stored (at or below their
+    // robot's highest stored seq), in first-seen order.
+    let mut keys: Vec<(&str, Vec<(&str, i64)>)> = Vec::new();
+    let mut distinct: HashSet<(&str, &str, i64)> = HashSet::new();
+    for job in jobs {
+        let run = job.run_id.as_str();
+        let high = highest.get(run);
+        for rec in &job.recs {
+            let stored_above = high
+                .and_then(|h| h.get(rec.robot_id.as_str()))
+                .is_some_and(|&h| rec.seq <= h);
+            if stored_above && distinct.insert((run, rec.robot_id.as_str(), rec.seq)) {
+                let key = (rec.robot_id.as_str(), rec.seq);
+                match keys.iter_mut().find(|(r, _)| *r == run) {
+                    Some((_, list)) => list.push(key),
+                    None => keys.push((run, vec![key])),
+                }
+            }
+        }
+    }
     let outcomes = with_pool!(pool, pool => {
         let mut tx = pool.begin_with(pool_begin(pool)).await?;
+        // The arrivals of the group's records already in the log: run -> robot -> seq.
+        let mut stored: HashMap<&str, HashMap<String, HashMap<i64, i64>>> = HashMap::new();
+        for (run, list) in &keys {
+            for chunk in list.chunks(KEYS_PER_LOOKUP) {
+                let mut q = sqlx::QueryBuilder::new(
+                    "SELECT robot_id, seq, arrival FROM observations WHERE run_id = ",
+                );
+                q.push_bind(*run);
+                q.push(" AND (robot_id, seq) IN (VALUES ");
+                let mut values = q.separated(", ");
+                for (robot, seq) in chunk {
+                    values.push("(");
+                    values.push_bind_unseparated(*robot);
+                    values.push_unseparated(", ");
+                    values.push_bind_unseparated(*seq);
+                    values.push_unseparated(")");
+                }
+                q.push(")");
+                for row in q.build().fetch_all(&mut *tx).await? {
+                    let robot: String = row.try_get("robot_id")?;
+                    stored
+                        .entry(*run)
+                        .or_default()
+                        .entry(robot)
+                        .or_default()
+                        .insert(row.try_get("seq")?, row.try_get("arrival")?);
+                }
+            }
+        }
         let mut outcomes = Vec::with_capacity(jobs.len());
+        let mut assigned: HashMap<(&str, &str, i64), i64> = HashMap::new();
+        let mut fresh: Vec<(&str, i64, &NewObservation)> = Vec::new();
         for job in jobs {
+            let run = job.run_id.as_str();
             let mut items = Vec::with_capacity(job.recs.len());
             for rec in &job.recs {
-                let arrival = next.get(job.run_id.as_str()).copied().unwrap_or(1);
-                let inserted = sqlx::query(INSERT_OBSERVATION)
-                    .bind(&job.run_id)
-                    .bind(arrival)
-                    .bind(&rec.robot_id)
-                    .bind(rec.seq)
-                    .bind(rec.t)
-                    .bind(&rec.body)
-                    .execute(&mut *tx)
-                    .await?
-                    .rows_affected()
-                    == 1;
-                let arrival = if inserted {
-                    next.insert(job.run_id.as_str(), arrival + 1);
-                    arrival
-                } else {
-                    sqlx::query(FIND_OBSERVATION)
-                        .bind(&job.run_id)
-                        .bind(&rec.robot_id)
-                        .bind(rec.seq)
-                        .fetch_one(&mut *tx)
-                        .await?
-                        .try_get::<i64, _>("arrival")?
+                let key = (run, rec.robot_id.as_str(), rec.seq);
+                let before = stored
+                    .get(run)
+                    .and_then(|robots| robots.get(key.1))
+                    .and_then(|seqs| seqs.get(&key.2))
+                    .or_else(|| assigned.get(&key))
+                    .copied();
+                let (arrival, duplicate) = match before {
+                    Some(arrival) => (arrival, true),
+                    None => {
+                        let counter = next.entry(run).or_insert(1);
+                        let arrival = *counter;
+                        *counter += 1;
+                        assigned.insert(key, arrival);
+                        fresh.push((run, arrival, rec));
+                        (arrival, false)
+                    }
                 };
                 items.push(Appended {
                     robot_id: rec.robot_id.clone(),
                     seq: rec.seq,
                     arrival,
-                    duplicate: !inserted,
+                    duplicate,
                 });
             }
             outcomes.push(AppendOutcome { items });
+        }
+        for chunk in fresh.chunks(ROWS_PER_INSERT) {
+            let mut q = sqlx::QueryBuilder::new(
+                "INSERT INTO observations (run_id, arrival, robot_id, seq, t, body) ",
+            );
+            q.push_values(chunk, |mut b, (run, arrival, rec)| {
+                b.push_bind(*run)
+                    .push_bind(*arrival)
+                    .push_bind(rec.robot_id.as_str())
+                    .push_bind(rec.seq)
+                    .push_bind(rec.t)
+                    .push_bind(rec.body.as_str());
+            });
+            q.build().execute(&mut *tx).await?;
         }
         tx.commit().await?;
         outcomes

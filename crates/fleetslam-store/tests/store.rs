@@ -105,6 +105,7 @@ suite!(
     list_runs_filters_pages_and_counts,
     robots_and_duplicate_conflict,
     append_arrivals_duplicates_and_paging,
+    large_appends_span_several_statements,
     append_rejects_bad_input,
     concurrent_appends_group_commit,
     snapshots_latest_and_at_or_before,
@@ -491,6 +492,68 @@ async fn append_arrivals_duplicates_and_paging(store: &Store) {
             .items
             .is_empty()
     );
+}
+
+/// Appends larger than one look-up and one multi-row insert (1,000 records each): every
+/// record is stored once with its arrival in call order, repeats (stored before, or earlier in
+/// the same call) keep the first arrival, and the body reads back byte for byte.
+async fn large_appends_span_several_statements(store: &Store) {
+    store.create_run(&new_run("big")).await.expect("create");
+    let first: Vec<NewObservation> = (0..2500).map(|s| obs(&format!("{}", s % 3), s)).collect();
+    let out = store.append("big", first.clone()).await.expect("append");
+    assert_eq!(out.inserted(), 2500);
+    assert!(
+        out.items
+            .iter()
+            .enumerate()
+            .all(|(i, a)| a.arrival == i as i64 + 1 && !a.duplicate)
+    );
+    // A retry of all of it with 1,200 new records interleaved and a repeat of a new one.
+    let mut retry = Vec::new();
+    for s in 0..2500 {
+        retry.push(first[s as usize].clone());
+        if s < 1200 {
+            retry.push(obs("9", s));
+        }
+    }
+    retry.push(obs("9", 7));
+    let out = store.append("big", retry.clone()).await.expect("retry");
+    assert_eq!(out.items.len(), retry.len());
+    assert_eq!(out.inserted(), 1200);
+    let mut new_arrival = 2501;
+    for (item, rec) in out.items.iter().zip(&retry) {
+        assert_eq!(
+            (item.robot_id.as_str(), item.seq),
+            (rec.robot_id.as_str(), rec.seq)
+        );
+        if rec.robot_id == "9" && !(item.duplicate) {
+            assert_eq!(item.arrival, new_arrival);
+            new_arrival += 1;
+        } else {
+            assert!(item.duplicate);
+            let want = if rec.robot_id == "9" {
+                2501 + 7
+            } else {
+                rec.seq + 1
+            };
+            assert_eq!(item.arrival, want, "{} {}", rec.robot_id, rec.seq);
+        }
+    }
+    assert_eq!(new_arrival, 3701);
+    assert_eq!(store.record_count("big").await.expect("count"), 3700);
+    let back = store.records_after("big", 2500, 5000).await.expect("read");
+    assert_eq!(back.len(), 1200);
+    assert_eq!((back[7].robot_id.as_str(), back[7].seq), ("9", 7));
+    assert_eq!(back[7].body, obs("9", 7).body);
+    // A seq below its robot's highest that was never stored is new (robot "0" holds the
+    // multiples of 3 up to 2,499), and its repeat in the same call is one.
+    let out = store
+        .append("big", vec![obs("0", 2), obs("0", 3), obs("0", 2)])
+        .await
+        .expect("below the highest");
+    let got: Vec<(i64, bool)> = out.items.iter().map(|a| (a.arrival, a.duplicate)).collect();
+    assert_eq!(got, [(3701, false), (4, true), (3701, true)]);
+    assert_eq!(store.record_count("big").await.expect("count"), 3701);
 }
 
 async fn append_rejects_bad_input(store: &Store) {

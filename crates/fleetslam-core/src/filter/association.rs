@@ -1,14 +1,14 @@
 //! Association of a record's observations with one particle's map (unknown ids: greedy by
 //! likelihood with mutual exclusion, through the map's spatial index).
 
-use super::gauss::{innovation, inv_logdet, predict};
 use super::{Action, StepCtx};
-use crate::config::{Association, FilterConfig, LN_2PI};
+use crate::config::{Association, FilterConfig};
 use crate::map::{INDEX_WIDE_TRACE, LandmarkMap};
 use crate::pose::Pose2;
-use crate::sensor::{LandmarkKind, range_bearing_inverse};
+use crate::sensor::{LandmarkKind, MeasurementModel, range_bearing_inverse};
+use crate::stats::gaussian_log_density;
 use crate::updater::LandmarkGaussian;
-use nalgebra::Matrix3;
+use nalgebra::{Matrix3, SMatrix};
 
 /// A radius a little beyond `√d2`, so that a spatial query of it surely holds every point
 /// whose squared distance is at most `d2` despite the rounding of the root and of the
@@ -28,9 +28,9 @@ pub(super) const PRECHECK_SLACK: f64 = 1.5;
 
 /// The observation's point in the world and a world-frame variance bound of the sensor noise,
 /// for the association pre-check.
-pub(super) fn world_point(
+pub(super) fn world_point<const D: usize>(
     cfg: &FilterConfig,
-    q: &Matrix3<f64>,
+    q: &SMatrix<f64, D, D>,
     pose: &Pose2,
     z: &[f64; 3],
 ) -> (f64, f64, f64) {
@@ -48,22 +48,22 @@ pub(super) fn world_point(
 }
 
 /// Squared Mahalanobis distance and Gaussian log-likelihood of observation `z` of a landmark
-/// `g` from `pose` with pose covariance `p`; `None` for a degenerate geometry.
+/// `g` from `pose` with pose covariance `p`, in measurement model `M` with noise `q`; `None`
+/// for a degenerate geometry.
 #[inline]
-pub(super) fn match_ll(
-    kind: LandmarkKind,
-    q: &Matrix3<f64>,
+pub(super) fn match_ll<const D: usize, M: MeasurementModel<D>>(
+    q: &SMatrix<f64, D, D>,
     g: &LandmarkGaussian,
     pose: &Pose2,
     p: &Matrix3<f64>,
     z: &[f64; 3],
 ) -> Option<(f64, f64)> {
-    let (zhat, hm, hx) = predict(kind, pose, &g.mean)?;
-    let s = hm * g.cov3() * hm.transpose() + q + hx * p * hx.transpose();
-    let (s_inv, logdet) = inv_logdet(kind, &s)?;
-    let nu = innovation(kind, z, &zhat);
+    let (zhat, hm, hx) = M::predict(pose, &g.mean)?;
+    let s = hm * M::cov(g) * hm.transpose() + q + hx * p * hx.transpose();
+    let (s_inv, det) = M::inverse_det(&s)?;
+    let nu = M::innovation(z, &zhat);
     let m2 = nu.dot(&(s_inv * nu));
-    let ll = -0.5 * m2 - 0.5 * (kind.dim() as f64 * LN_2PI + logdet);
+    let ll = gaussian_log_density(m2, det.ln(), D);
     (m2.is_finite() && ll.is_finite()).then_some((m2, ll))
 }
 
@@ -78,9 +78,9 @@ pub(super) fn match_ll(
 /// from every landmark of the map and from the landmarks started earlier in the same record;
 /// otherwise it is ambiguous (`Ignore`).
 #[allow(clippy::too_many_arguments)]
-pub(super) fn associate_record(
+pub(super) fn associate_record<const D: usize, M: MeasurementModel<D>>(
     ctx: &StepCtx<'_>,
-    q: &Matrix3<f64>,
+    q: &SMatrix<f64, D, D>,
     map: &LandmarkMap,
     pose: &Pose2,
     p: &Matrix3<f64>,
@@ -88,7 +88,6 @@ pub(super) fn associate_record(
     best_ll: &mut [f64],
 ) {
     let cfg = ctx.cfg;
-    let kind = cfg.landmark_kind;
     best_ll.fill(f64::NEG_INFINITY);
     if cfg.association == Association::Known {
         for (j, o) in ctx.obs.iter().enumerate() {
@@ -126,7 +125,7 @@ pub(super) fn associate_record(
             if d2 > ctx.new_landmark * bound {
                 return;
             }
-            if let Some((m2, ll)) = match_ll(kind, q, g, pose, p, &o.z) {
+            if let Some((m2, ll)) = match_ll::<D, M>(q, g, pose, p, &o.z) {
                 nearest_m2[j] = nearest_m2[j].min(m2);
                 pairs.push((j, slot, m2, ll));
             }
@@ -167,7 +166,8 @@ pub(super) fn associate_record(
         let (wx, wy) = points[j];
         let near_fresh = fresh.iter().any(|g| {
             (g.mean[0] - wx).powi(2) + (g.mean[1] - wy).powi(2) < sep2
-                || match_ll(kind, q, g, pose, p, &o.z).is_none_or(|(m2, _)| m2 <= ctx.new_landmark)
+                || match_ll::<D, M>(q, g, pose, p, &o.z)
+                    .is_none_or(|(m2, _)| m2 <= ctx.new_landmark)
         });
         if !near_fresh {
             fresh.push(ctx.updater.initialize(pose, &o.z));

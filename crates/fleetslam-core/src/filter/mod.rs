@@ -36,7 +36,8 @@
 //! particles) and estimates; `work_item.rs` takes one work item of particles through a
 //! record's phases; `association.rs` associates a record in one particle; `proposal.rs`
 //! moves a pose (2.0's proposal, sightings, 1.0's motion sample, odometry scales);
-//! `gauss.rs` holds the Gaussian and measurement-model math they share.
+//! `gauss.rs` holds the pose-Gaussian math they share; the measurement models' math, generic
+//! over the landmark kind, is [`crate::sensor::MeasurementModel`].
 //!
 //! Particles are processed in parallel with rayon, in [`WORK_ITEMS_PER_THREAD`] work items
 //! per thread (the updater gets at most `batch_size` updates per call).
@@ -52,8 +53,8 @@ use crate::config::{Association, ConfigError, FilterConfig, WORK_ITEMS_PER_THREA
 use crate::log::Record;
 use crate::map::LandmarkMap;
 use crate::motion::Motion;
-use crate::pose::{Pose2, PoseGaussian, weighted_mean_pose, wrap_angle};
-use crate::resample::{normalize_log_weights, systematic};
+use crate::pose::{Pose2, PoseGaussian, weighted_mean_pose, weighted_mean_pose_sc, wrap_angle};
+use crate::resample::{normalize_log_weights_keeping, systematic};
 use crate::rng::{LANE_ADD_ROBOT, LANE_RESAMPLE, stream};
 use crate::sensor::LandmarkKind;
 use crate::updater::{LandmarkGaussian, LandmarkUpdater};
@@ -256,6 +257,15 @@ pub struct FastSlam {
     stats: FilterStats,
     /// Thresholds derived from the (immutable) configuration once, not per step.
     derived: Derived,
+    /// `exp(log_w)` of each particle as the last normalisation or resample computed it (the
+    /// same bits as computing it again); empty before the first step. Estimates read it
+    /// instead of taking an `exp` per particle on every record.
+    weights: Vec<f64>,
+    /// `(sin θ, cos θ)` of robot `headings_of`'s heading in each particle, computed in
+    /// parallel by the last step (which moved that robot), for its mean pose; empty or of
+    /// another robot otherwise.
+    headings: Vec<(f64, f64)>,
+    headings_of: Option<usize>,
 }
 
 /// The association thresholds and clutter densities that follow from a configuration (χ²
@@ -365,7 +375,7 @@ impl FastSlam {
                 poses: Vec::new(),
                 pose_covs: Vec::new(),
                 odometry_scales: Vec::new(),
-                map: LandmarkMap::new(),
+                map: new_map(config.association),
                 log_w: -(n as f64).ln(),
             })
             .collect();
@@ -380,6 +390,9 @@ impl FastSlam {
             step: 0,
             ess: n as f64,
             stats: FilterStats::default(),
+            weights: Vec::new(),
+            headings: Vec::new(),
+            headings_of: None,
         })
     }
 
@@ -624,12 +637,21 @@ impl FastSlam {
         let best_before = self.best_index();
         let slots_before = self.particles[best_before].map.len();
         let batch = work_item_len(self.particles.len(), rayon::current_num_threads());
+        self.headings.resize(self.particles.len(), (0.0, 0.0));
         let step_stats = self
             .particles
             .par_chunks_mut(batch)
+            .zip(self.headings.par_chunks_mut(batch))
             .enumerate()
-            .map(|(c, chunk)| process_chunk(&ctx, c * batch, chunk))
+            .map(|(c, (chunk, headings))| {
+                let stats = process_chunk(&ctx, c * batch, chunk);
+                for (p, h) in chunk.iter().zip(headings) {
+                    *h = p.poses[r].theta.sin_cos();
+                }
+                stats
+            })
             .reduce(FilterStats::default, FilterStats::add);
+        self.headings_of = Some(r);
 
         for (id, s) in new_ids {
             self.known_slots.insert(id, s);
@@ -643,7 +665,7 @@ impl FastSlam {
         self.stats.observations += obs.len() as u64;
 
         let mut log_w: Vec<f64> = self.particles.iter().map(|p| p.log_w).collect();
-        self.ess = normalize_log_weights(&mut log_w);
+        self.ess = normalize_log_weights_keeping(&mut log_w, &mut self.weights);
         for (p, w) in self.particles.iter_mut().zip(&log_w) {
             p.log_w = *w;
         }
@@ -678,12 +700,33 @@ impl FastSlam {
         let idx = systematic(log_w, &mut rng);
         let n = self.particles.len();
         let uniform = -(n as f64).ln();
-        let old = std::mem::take(&mut self.particles);
+        self.weights.clear();
+        self.weights.resize(n, uniform.exp());
+        if self.headings.len() == n {
+            self.headings = idx.iter().map(|&i| self.headings[i]).collect();
+        }
+        // Each parent's last child takes the parent itself; only the others are copies.
+        let mut children = vec![0u32; n];
+        for &i in &idx {
+            children[i] += 1;
+        }
+        let mut old: Vec<Option<Particle>> = std::mem::take(&mut self.particles)
+            .into_iter()
+            .map(Some)
+            .collect();
         self.particles = idx
             .into_iter()
-            .map(|i| Particle {
-                log_w: uniform,
-                ..old[i].clone()
+            .map(|i| {
+                children[i] -= 1;
+                let parent = if children[i] == 0 {
+                    old[i].take()
+                } else {
+                    old[i].clone()
+                };
+                Particle {
+                    log_w: uniform,
+                    ..parent.expect("a parent is taken by its last child only")
+                }
             })
             .collect();
         self.ess = n as f64;
@@ -703,11 +746,26 @@ impl FastSlam {
 
     /// Weighted mean pose of one robot.
     pub fn mean_pose(&self, robot: usize) -> Pose2 {
-        weighted_mean_pose(
-            self.particles
-                .iter()
-                .map(|p| (&p.poses[robot], p.log_w.exp())),
-        )
+        let particles = self.particles.iter().enumerate();
+        if self.headings_of == Some(robot) && self.headings.len() == self.particles.len() {
+            weighted_mean_pose_sc(
+                particles
+                    .zip(&self.headings)
+                    .map(|((i, p), &sc)| (&p.poses[robot], sc, self.weight(i))),
+            )
+        } else {
+            weighted_mean_pose(particles.map(|(i, p)| (&p.poses[robot], self.weight(i))))
+        }
+    }
+
+    /// Particle `i`'s normalised weight `exp(log_w)`: the one the last normalisation kept
+    /// (the same bits), or computed when there is none (a new or restored filter).
+    #[inline]
+    fn weight(&self, i: usize) -> f64 {
+        match self.weights.get(i) {
+            Some(&w) if self.weights.len() == self.particles.len() => w,
+            _ => self.particles[i].log_w.exp(),
+        }
     }
 
     /// Up to `max` particles' poses of one robot, evenly spaced over the particle set, with
@@ -717,8 +775,9 @@ impl FastSlam {
         let stride = n.div_ceil(max.max(1)).max(1);
         self.particles
             .iter()
+            .enumerate()
             .step_by(stride)
-            .map(|p| (p.poses[robot], p.log_w.exp()))
+            .map(|(i, p)| (p.poses[robot], self.weight(i)))
             .collect()
     }
 
@@ -733,8 +792,8 @@ impl FastSlam {
                 let mean = self.mean_pose(r);
                 let mut cov = [[0.0; 3]; 3];
                 let (mut odometry_scale, mut sw) = ([0.0; 2], 0.0);
-                for p in &self.particles {
-                    let w = p.log_w.exp();
+                for (i, p) in self.particles.iter().enumerate() {
+                    let w = self.weight(i);
                     sw += w;
                     for (m, s) in odometry_scale.iter_mut().zip(p.odometry_scales[r]) {
                         *m += w * s;
@@ -796,9 +855,9 @@ impl FastSlam {
     fn landmark_marginal(&self, slot: usize) -> Option<LandmarkGaussian> {
         let mut sw = 0.0;
         let mut mean = Vector3::zeros();
-        for p in &self.particles {
+        for (i, p) in self.particles.iter().enumerate() {
             if let Some(l) = p.map.get(slot) {
-                let w = p.log_w.exp();
+                let w = self.weight(i);
                 sw += w;
                 mean += w * Vector3::from(l.gaussian.mean);
             }
@@ -808,9 +867,9 @@ impl FastSlam {
         }
         mean /= sw;
         let mut cov = Matrix3::zeros();
-        for p in &self.particles {
+        for (i, p) in self.particles.iter().enumerate() {
             if let Some(l) = p.map.get(slot) {
-                let w = p.log_w.exp() / sw;
+                let w = self.weight(i) / sw;
                 let d = Vector3::from(l.gaussian.mean) - mean;
                 cov += w * (l.gaussian.cov3() + d * d.transpose());
             }
@@ -852,6 +911,9 @@ impl FastSlam {
             ));
         }
         for p in &mut s.particles {
+            if s.config.association == Association::Known {
+                p.map.drop_index();
+            }
             if p.pose_covs.len() != p.poses.len() {
                 if !p.pose_covs.is_empty() {
                     return Err(FilterError::Snapshot(
@@ -886,7 +948,19 @@ impl FastSlam {
             step: s.step,
             ess: s.ess,
             stats: s.stats,
+            weights: Vec::new(),
+            headings: Vec::new(),
+            headings_of: None,
         })
+    }
+}
+
+/// A particle's empty map: with known association, landmarks are found by their ids' slots
+/// alone, so the map keeps no spatial index (which would cost every landmark write).
+fn new_map(association: Association) -> LandmarkMap {
+    match association {
+        Association::Known => LandmarkMap::without_index(),
+        Association::Unknown => LandmarkMap::new(),
     }
 }
 
@@ -917,14 +991,13 @@ fn check_updater(cfg: &FilterConfig, u: &dyn LandmarkUpdater) -> Result<(), Filt
 
 #[cfg(test)]
 mod tests {
-    use super::gauss::q_matrix;
     use super::proposal::propose;
     use super::*;
     use crate::config::{DeferSampling, FastSlamVersion, OdometryCalibration};
     use crate::log::LandmarkObservation;
     use crate::map::Landmark;
     use crate::motion::{MotionNoise, covariance_in_world};
-    use crate::sensor::range_bearing_predict;
+    use crate::sensor::{MeasurementModel, RangeBearingModel, range_bearing_predict};
 
     fn still() -> MotionNoise {
         MotionNoise {
@@ -974,6 +1047,62 @@ mod tests {
         }
         snap.known_slots.insert(7, 0);
         FastSlam::from_snapshot(snap, f.updater().clone()).unwrap()
+    }
+
+    /// Under known association the particles' maps keep no spatial index, also after a
+    /// snapshot (whose maps are read with one); under unknown association they keep one.
+    #[test]
+    fn only_maps_searched_by_place_keep_an_index() {
+        for (association, indexed) in [(Association::Known, false), (Association::Unknown, true)] {
+            let mut f = filter_with_offsets(FastSlamVersion::V2, association, &[0.0, 0.1]);
+            f.step(&record(&[[2.0, 0.0]])).unwrap();
+            let g = FastSlam::from_snapshot(f.snapshot(), f.updater().clone()).unwrap();
+            for p in f.particles().iter().chain(g.particles()) {
+                assert!(!p.map.is_empty());
+                assert_eq!(p.map.is_indexed(), indexed, "{association:?}");
+            }
+        }
+    }
+
+    /// The weights and headings a step keeps give the mean pose that `exp` of each
+    /// log-weight and the poses' own headings give, bit for bit, after a step that resampled
+    /// and one that did not, and after a restore (which keeps neither).
+    #[test]
+    fn kept_weights_give_the_mean_of_the_log_weights() {
+        let f = filter_with_offsets(FastSlamVersion::V1, Association::Known, &offsets());
+        let mut snap = f.snapshot();
+        snap.config.resample_threshold = 0.5;
+        let mut f = FastSlam::from_snapshot(snap, f.updater().clone()).unwrap();
+        f.add_robot(
+            "s",
+            &PoseGaussian::diagonal(Pose2::new(1.0, 1.0, 0.5), 0.1, 0.1, 0.1),
+            0.0,
+        )
+        .unwrap();
+        let direct = |f: &FastSlam, r: usize| {
+            weighted_mean_pose(f.particles().iter().map(|p| (&p.poses[r], p.log_w.exp())))
+        };
+        let mut resampled = [false, false];
+        for k in 0..8 {
+            // First a still robot whose range tells the particles' landmarks apart.
+            let rec = match k {
+                0 => record(&[[2.0, 0.0]]),
+                3 | 6 => moving("s", 1.0 + k as f64, &[], &[]),
+                _ => moving("r", 1.0 + k as f64, &[[2.0 - 0.1 * k as f64, 0.0]], &[]),
+            };
+            resampled[usize::from(f.step(&rec).unwrap().resampled)] = true;
+            assert_eq!(f.weights.len(), f.particles().len());
+            assert_eq!(f.headings_of, Some(usize::from(rec.robot == "s")));
+            for r in 0..2 {
+                assert_eq!(f.mean_pose(r), direct(&f, r));
+            }
+        }
+        assert_eq!(resampled, [true, true], "both kinds of step were taken");
+        let g = FastSlam::from_snapshot(f.snapshot(), f.updater().clone()).unwrap();
+        assert!(g.weights.is_empty() && g.headings.is_empty());
+        assert_eq!(g.mean_pose(0), f.mean_pose(0));
+        assert_eq!(g.mean_pose(1), f.mean_pose(1));
+        assert_eq!(g.estimate(), f.estimate());
     }
 
     /// Robot "r" observing landmark 7 at `z` at t = 1 without moving.
@@ -1440,12 +1569,12 @@ mod tests {
             sighting_clutter: -10.0,
             defer: true,
         };
-        let q = q_matrix(&cfg);
+        let q = RangeBearingModel::noise(&cfg.sensor_noise);
         let part = &f.particles()[0];
         let mut acts = [Action::Update(0)];
         let mut rng = stream(0, 0, 0);
         let mut propose_with = |cov: &Matrix3<f64>| {
-            propose(
+            propose::<2, RangeBearingModel>(
                 &ctx,
                 &q,
                 part,

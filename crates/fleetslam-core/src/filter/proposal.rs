@@ -2,15 +2,15 @@
 //! the matched observations), robot sightings as Kalman updates of a deferred pose
 //! Gaussian, FastSLAM 1.0's motion sample, and the odometry scales' draws and walk.
 
-use super::gauss::{cholesky_psd, innovation, inv_logdet, normal3, predict, sym3};
+use super::gauss::{cholesky_psd, normal3, sym3};
 use super::{Action, Particle, StepCtx};
-use crate::config::{LN_2PI, OdometryCalibration};
+use crate::config::OdometryCalibration;
 use crate::motion::scale_increment;
 use crate::pose::{Pose2, wrap_angle};
 use crate::rng::{LANE_CALIBRATION, stream};
-use crate::sensor::range_bearing_predict;
-use crate::stats::log_add_exp;
-use nalgebra::{Matrix3, Vector3};
+use crate::sensor::{MeasurementModel, RangeBearingModel};
+use crate::stats::{gaussian_log_density, log_add_exp};
+use nalgebra::{Matrix2, Matrix2x3, Matrix3, SMatrix, Vector2, Vector3};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -26,24 +26,15 @@ pub(super) fn sighting_marginal(
     pr: &Matrix3<f64>,
     target: &Pose2,
     pt: &Matrix3<f64>,
-    qs: &nalgebra::Matrix2<f64>,
+    qs: &Matrix2<f64>,
     z: &[f64; 2],
-) -> Option<(
-    f64,
-    nalgebra::Matrix2x3<f64>,
-    nalgebra::Matrix2<f64>,
-    nalgebra::Vector2<f64>,
-)> {
-    let (zhat, hm, hx) = range_bearing_predict(pose, target.x, target.y)?;
+) -> Option<(f64, Matrix2x3<f64>, Matrix2<f64>, Vector2<f64>)> {
+    let (zhat, hm, hx) = RangeBearingModel::predict(pose, &[target.x, target.y, 0.0])?;
     let ptp = pt.fixed_view::<2, 2>(0, 0).into_owned();
     let s = qs + hm * ptp * hm.transpose() + hx * pr * hx.transpose();
-    let det = s.determinant();
-    if !(det > 0.0 && det.is_finite()) {
-        return None;
-    }
-    let s_inv = s.try_inverse()?;
-    let nu = nalgebra::Vector2::new(z[0] - zhat[0], wrap_angle(z[1] - zhat[1]));
-    let ll = -0.5 * nu.dot(&(s_inv * nu)) - LN_2PI - 0.5 * det.ln();
+    let (s_inv, det) = RangeBearingModel::inverse_det(&s)?;
+    let nu = RangeBearingModel::innovation(&[z[0], z[1], 0.0], &zhat);
+    let ll = gaussian_log_density(nu.dot(&(s_inv * nu)), det.ln(), 2);
     ll.is_finite().then_some((ll, hx, s_inv, nu))
 }
 
@@ -55,9 +46,9 @@ pub(super) fn sighting_marginal(
 /// factor): the caller then falls back to 1.0's proposal for this particle. Matched
 /// observations whose prediction fails, or beyond the `outlier` bound, become `Outlier`.
 #[allow(clippy::too_many_arguments)]
-pub(super) fn propose(
+pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
     ctx: &StepCtx<'_>,
-    q: &Matrix3<f64>,
+    q: &SMatrix<f64, D, D>,
     part: &Particle,
     mean0: &Pose2,
     pc0: &Matrix3<f64>,
@@ -65,7 +56,6 @@ pub(super) fn propose(
     best_ll: &[f64],
     rng: &mut ChaCha8Rng,
 ) -> Option<(Pose2, f64)> {
-    let kind = ctx.cfg.landmark_kind;
     let outlier = ctx.cfg.association_params.outlier;
     let mut mu = Vector3::new(mean0.x, mean0.y, mean0.theta);
     let mut pc = *pc0;
@@ -88,22 +78,22 @@ pub(super) fn propose(
             dw += ctx.clutter;
             continue;
         };
-        let Some((zhat, hm, hx)) = predict(kind, &pose, &lm.gaussian.mean) else {
+        let Some((zhat, hm, hx)) = M::predict(&pose, &lm.gaussian.mean) else {
             acts[j] = Action::Outlier;
             dw += ctx.clutter;
             continue;
         };
-        let qj = hm * lm.gaussian.cov3() * hm.transpose() + q;
+        let qj = hm * M::cov(&lm.gaussian) * hm.transpose() + q;
         let pht = pc * hx.transpose();
         let s = hx * pht + qj;
-        let Some((s_inv, logdet)) = inv_logdet(kind, &s) else {
+        let Some((s_inv, det)) = M::inverse_det(&s) else {
             acts[j] = Action::Outlier;
             dw += ctx.clutter;
             continue;
         };
-        let nu = innovation(kind, &o.z, &zhat);
+        let nu = M::innovation(&o.z, &zhat);
         let m2 = nu.dot(&(s_inv * nu));
-        let ll = -0.5 * m2 - 0.5 * (kind.dim() as f64 * LN_2PI + logdet);
+        let ll = gaussian_log_density(m2, det.ln(), D);
         dw += log_add_exp(
             if ll.is_finite() {
                 ll
@@ -163,7 +153,7 @@ pub(super) fn propose(
 /// log-weight increment, each sighting's mixture likelihood.
 pub(super) fn sighting_update(
     ctx: &StepCtx<'_>,
-    qs: &nalgebra::Matrix2<f64>,
+    qs: &Matrix2<f64>,
     p: &Particle,
     mean0: Pose2,
     pc0: Matrix3<f64>,
@@ -191,7 +181,7 @@ pub(super) fn sighting_step(
     p: &Particle,
     other: usize,
     z: &[f64; 2],
-    qs: &nalgebra::Matrix2<f64>,
+    qs: &Matrix2<f64>,
     mu: &Pose2,
     pc: &Matrix3<f64>,
 ) -> Option<(f64, Pose2, Matrix3<f64>)> {

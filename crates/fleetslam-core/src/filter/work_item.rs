@@ -2,7 +2,7 @@
 //! phases (poses and association, landmark updates, sightings, merging, existence).
 
 use super::association::{associate_record, covering_radius};
-use super::gauss::{compose_jacobian, q_matrix, sample_gaussian, sym3, upper3};
+use super::gauss::{compose_jacobian, sample_gaussian, sym3, upper3};
 use super::proposal::{
     propose, sample_motion, scaled_increment, sighting_marginal, sighting_update,
 };
@@ -12,6 +12,7 @@ use crate::map::Landmark;
 use crate::motion::covariance_in_world_sc;
 use crate::pose::wrap_angle;
 use crate::rng::stream;
+use crate::sensor::{LandmarkKind, MeasurementModel, Point3Model, RangeBearingModel};
 use crate::stats::log_add_exp;
 use crate::updater::{UpdateInput, UpdateNeeds, UpdateOutput};
 use nalgebra::Matrix3;
@@ -53,7 +54,12 @@ pub(super) fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particl
     // 2.0 with deferred sampling: a record without landmark observations moves each
     // particle's pose Gaussian of this robot (its sightings update it) instead of sampling.
     let defer = cfg.version == FastSlamVersion::V2 && ctx.defer && ctx.obs.is_empty();
-    let decided = move_poses(ctx, base, chunk, defer, &mut stats);
+    let decided = match cfg.landmark_kind {
+        LandmarkKind::RangeBearing2d => {
+            move_poses::<2, RangeBearingModel>(ctx, base, chunk, defer, &mut stats)
+        }
+        LandmarkKind::Point3d => move_poses::<3, Point3Model>(ctx, base, chunk, defer, &mut stats),
+    };
     let observed = update_landmarks(ctx, chunk, &decided, &mut stats);
     if !ctx.sightings.is_empty() && !defer {
         weigh_sightings(ctx, chunk, &decided);
@@ -74,8 +80,8 @@ pub(super) fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particl
 
 /// Phase 1: each particle's new pose of the robot (deferred Gaussian, 2.0's proposal, or
 /// 1.0's motion sample), the record's association, and in 2.0 the weights from the
-/// proposal.
-fn move_poses(
+/// proposal. Generic over the run's measurement model, which the caller picks.
+fn move_poses<const D: usize, M: MeasurementModel<D>>(
     ctx: &StepCtx<'_>,
     base: usize,
     chunk: &mut [Particle],
@@ -86,7 +92,7 @@ fn move_poses(
     let r = ctx.robot;
     let n = chunk.len();
     let nobs = ctx.obs.len();
-    let q = q_matrix(cfg);
+    let q = M::noise(&cfg.sensor_noise);
     let mut actions = vec![Action::Ignore; n * nobs];
     let mut best_ll = vec![f64::NEG_INFINITY; n * nobs];
     let mut weigh_in_update = vec![true; n];
@@ -123,8 +129,8 @@ fn move_poses(
         }
         p.pose_covs[r] = [0.0; 6];
         if v2 && nobs > 0 {
-            associate_record(ctx, &q, &p.map, &mean0, &pc0, acts, bll);
-            if let Some((pose, dw)) = propose(ctx, &q, p, &mean0, &pc0, acts, bll, rng) {
+            associate_record::<D, M>(ctx, &q, &p.map, &mean0, &pc0, acts, bll);
+            if let Some((pose, dw)) = propose::<D, M>(ctx, &q, p, &mean0, &pc0, acts, bll, rng) {
                 p.poses[r] = pose;
                 p.log_w += dw;
                 weigh_in_update[i] = false;
@@ -139,7 +145,7 @@ fn move_poses(
         };
         p.poses[r] = pose;
         if nobs > 0 {
-            associate_record(ctx, &q, &p.map, &pose, &Matrix3::zeros(), acts, bll);
+            associate_record::<D, M>(ctx, &q, &p.map, &pose, &Matrix3::zeros(), acts, bll);
         }
     }
 

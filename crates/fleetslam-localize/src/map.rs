@@ -22,11 +22,11 @@ use fleetslam_core::filter::{Estimate, FastSlam};
 use fleetslam_core::log::LandmarkObservation;
 use fleetslam_core::pose::Pose2;
 use fleetslam_core::sensor::{
-    LandmarkKind, MeasurementModel, Point3Model, RangeBearingModel, SensorNoise, point3_predict,
+    LandmarkKind, MeasurementModel, Point3Model, RangeBearingModel, SensorNoise,
 };
 use fleetslam_core::stats::gaussian_log_density;
 use fleetslam_core::updater::LandmarkGaussian;
-use nalgebra::{Matrix2, Matrix3, SMatrix};
+use nalgebra::{Matrix2, Matrix3, SMatrix, SVector};
 use serde::{Deserialize, Serialize};
 
 /// One landmark of a fixed map.
@@ -372,16 +372,18 @@ impl<'a> Scorer<'a> {
                 if nr * nr > bound * (tr + self.q2[(0, 0)]) {
                     return None;
                 }
-                gaussian_ll::<2, RangeBearingModel>(&self.q2, pose, z, l)
+                let (zhat, hm, _) = RangeBearingModel::predict(pose, &l.mean)?;
+                let nu = RangeBearingModel::innovation(z, &zhat);
+                gaussian_ll::<2, RangeBearingModel>(&self.q2, l, &nu, &hm)
             }
             LandmarkKind::Point3d => {
-                let (zhat, _, _) = point3_predict(pose, &l.mean);
+                let (zhat, hm, _) = Point3Model::predict(pose, &l.mean)?;
                 let nu = Point3Model::innovation(z, &zhat);
                 let qmax = self.q3[(0, 0)].max(self.q3[(1, 1)]).max(self.q3[(2, 2)]);
                 if nu.norm_squared() > bound * (tr + qmax) {
                     return None;
                 }
-                gaussian_ll::<3, Point3Model>(&self.q3, pose, z, l)
+                gaussian_ll::<3, Point3Model>(&self.q3, l, &nu, &hm)
             }
         }
     }
@@ -425,19 +427,17 @@ impl<'a> Scorer<'a> {
     }
 }
 
-/// `log N(z; h(x, μ), H_m Σ H_mᵀ + Q)` in measurement model `M`; `None` when the landmark
-/// sits on the robot (no bearing) or the covariance is degenerate.
+/// `log N(ν; 0, H_m Σ H_mᵀ + Q)` in measurement model `M`, for an innovation `ν` and a
+/// Jacobian `H_m` already predicted; `None` when the covariance is degenerate.
 #[inline]
 fn gaussian_ll<const D: usize, M: MeasurementModel<D>>(
     q: &SMatrix<f64, D, D>,
-    pose: &Pose2,
-    z: &[f64; 3],
     l: &LandmarkGaussian,
+    nu: &SVector<f64, D>,
+    hm: &SMatrix<f64, D, D>,
 ) -> Option<f64> {
-    let (zhat, hm, _) = M::predict(pose, &l.mean)?;
     let s = hm * M::cov(l) * hm.transpose() + q;
     let (inv, det) = M::inverse_det(&s)?;
-    let nu = M::innovation(z, &zhat);
     Some(gaussian_log_density(nu.dot(&(inv * nu)), det.ln(), D))
 }
 

@@ -10,6 +10,8 @@
 //! cargo run --release --example filter_seeds -- victoria [--seeds 1] [--particles 100] \
 //!     [--duration S] [--dataset DIR]
 //! cargo run --release --example filter_seeds -- speed [--seeds 1] [--particles N]
+//! cargo run --release --example filter_seeds -- snapshot [--seeds 1] [--particles N] \
+//!     [--duration S]
 //! ```
 //!
 //! `mrclam` runs MRCLAM Dataset 6 (all five robots) once per seed and prints team ATE, RPE
@@ -32,6 +34,9 @@
 //! particles as a multiple of real time, and Victoria Park (unknown association, 100
 //! particles); on all the rayon threads (`RAYON_NUM_THREADS` sets them). With `--particles
 //! N`, only the simulated log, at N particles (a workload small enough for callgrind).
+//! `snapshot` runs MRCLAM Dataset 6 with and without ids (1,000 particles) and Victoria Park
+//! (100) and prints their final snapshots' size, write time and read-and-restore time with
+//! the maps in a node pool and, as before it, each particle's map whole.
 
 use fleetslam_core::config::{DeferSampling, FastSlamVersion};
 use fleetslam_core::filter::FastSlam;
@@ -51,7 +56,7 @@ use std::time::Instant;
 
 fn usage() -> ! {
     eprintln!(
-        "usage: filter_seeds mrclam|control-noise|sims|clusters|victoria|speed [--no-ids] [--seeds A-B|a,b,c] \
+        "usage: filter_seeds mrclam|control-noise|sims|clusters|victoria|speed|snapshot [--no-ids] [--seeds A-B|a,b,c] \
          [--particles N] [--version 1|2] [--duration S] [--dataset DIR] [--windows S]"
     );
     std::process::exit(2)
@@ -349,6 +354,36 @@ fn main() {
                 );
             }
         }
+        "snapshot" => {
+            let seed = seeds.and_then(|s| s.first().copied()).unwrap_or(1);
+            println!(
+                "snapshots at the end of a run (seed {seed}): the node pool against each \
+                 particle's map written whole (the format before it)"
+            );
+            let mrclam_ids = mrclam(&dataset, false, duration, odometry_delay);
+            let mrclam_no_ids = mrclam(&dataset, true, duration, odometry_delay);
+            let vp = import_victoria_park(
+                &PathBuf::from("../shared/datasets/victoria-park"),
+                &VictoriaOptions {
+                    duration,
+                    ..Default::default()
+                },
+            )
+            .expect("import Victoria Park");
+            let p = particles.unwrap_or(1000);
+            for (name, log, n) in [
+                ("MRCLAM Dataset 6, known ids", &mrclam_ids.log, p),
+                ("MRCLAM Dataset 6, no ids", &mrclam_no_ids.log, p),
+                ("Victoria Park", &vp.log, particles.unwrap_or(100)),
+            ] {
+                let mut cfg = experiment_config(&log.header);
+                cfg.particles = n;
+                cfg.seed = seed;
+                let mut slam = FastSlam::new(cfg).expect("valid configuration");
+                run_log(&mut slam, log, TrajectoryEstimate::Mean, |_, _| {}).expect("run");
+                snapshot_sizes(name, &slam);
+            }
+        }
         "speed" => {
             let seed = seeds.and_then(|s| s.first().copied()).unwrap_or(1);
             println!(
@@ -413,6 +448,81 @@ fn main() {
         }
         _ => usage(),
     }
+}
+
+/// A snapshot as written before the node pool: each particle's map whole.
+#[derive(serde::Serialize)]
+struct WholeMaps<'a> {
+    config: &'a fleetslam_core::config::FilterConfig,
+    robots: &'a [fleetslam_core::filter::RobotState],
+    particles: &'a [fleetslam_core::filter::Particle],
+    known_slots: &'a std::collections::BTreeMap<u32, usize>,
+    step: u64,
+    ess: f64,
+    stats: &'a fleetslam_core::filter::FilterStats,
+}
+
+/// Prints a filter's snapshot in both formats: size, time to write, time to read and
+/// restore, and landmarks written.
+fn snapshot_sizes(name: &str, slam: &FastSlam) {
+    let snap = slam.snapshot();
+    let held: usize = snap.particles.iter().map(|p| p.map.len()).sum();
+    let updater = slam.updater().clone();
+    let time = |f: &mut dyn FnMut()| {
+        // The best of three: the machine's other work only adds.
+        (0..3)
+            .map(|_| {
+                let t = Instant::now();
+                f();
+                t.elapsed().as_secs_f64() * 1e3
+            })
+            .fold(f64::INFINITY, f64::min)
+    };
+    let mut pooled = Vec::new();
+    let write_pooled = time(&mut || pooled = serde_json::to_vec(&snap).expect("encode"));
+    let old = WholeMaps {
+        config: &snap.config,
+        robots: &snap.robots,
+        particles: &snap.particles,
+        known_slots: &snap.known_slots,
+        step: snap.step,
+        ess: snap.ess,
+        stats: &snap.stats,
+    };
+    let mut whole = Vec::new();
+    let write_whole = time(&mut || whole = serde_json::to_vec(&old).expect("encode"));
+    let read = |data: &[u8]| {
+        let s: fleetslam_core::filter::Snapshot = serde_json::from_slice(data).expect("decode");
+        FastSlam::from_snapshot(s, updater.clone()).expect("restore")
+    };
+    let read_pooled = time(&mut || drop(read(&pooled)));
+    let read_whole = time(&mut || drop(read(&whole)));
+    let restored = read(&pooled);
+    assert!(
+        restored.particles() == slam.particles(),
+        "restored particles differ"
+    );
+    let value: serde_json::Value = serde_json::from_slice(&pooled).expect("JSON");
+    let nodes = value["map_nodes"].as_array().expect("a pool");
+    let in_pool: usize = nodes
+        .iter()
+        .filter_map(|n| n.get("leaf"))
+        .map(|l| {
+            l.as_array()
+                .map_or(0, |a| a.iter().filter(|x| !x.is_null()).count())
+        })
+        .sum();
+    println!(
+        "{name}, {} particles, {} landmarks in the best map: landmarks written {in_pool} \
+         (pool, {} nodes) against {held}; {:.1} MB against {:.1} MB; write {write_pooled:.0} \
+         against {write_whole:.0} ms; read and restore {read_pooled:.0} against \
+         {read_whole:.0} ms",
+        snap.particles.len(),
+        slam.estimate().landmarks.len(),
+        nodes.len(),
+        pooled.len() as f64 / 1e6,
+        whole.len() as f64 / 1e6,
+    );
 }
 
 /// Prints the team's error per window of `w` seconds of a run's `estimate`: unaligned,

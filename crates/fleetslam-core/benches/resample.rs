@@ -15,11 +15,13 @@
 //! drawn frees those paths (about log₈ M nodes per updated landmark).
 //! `resample_in_step/{always,never}/<M>`: the same full step (5 observations) with
 //! `resample_threshold` 1.0 (resamples) and 0.0 (does not); the difference is the resampling
-//! inside the filter.
+//! inside the filter. `resample_in_step/{always,never}_shared/<M>`: the same on particles whose
+//! maps are one shared map (`common::shared_filter`), stepped once before so that each owns the
+//! paths of the landmarks it observes, as after a run's resamplings.
 
 mod common;
 
-use common::{grow_map, new_filter, observe_five, with_config};
+use common::{grow_map, new_filter, observe_five, shared_filter, with_config};
 use criterion::{BatchSize, BenchmarkId, Criterion, SamplingMode, criterion_group, criterion_main};
 use fleetslam_core::FastSlam;
 use fleetslam_core::filter::Particle;
@@ -114,19 +116,34 @@ fn bench_resample(c: &mut Criterion) {
             g.finish();
         }
 
-        // In the filter: the same step, resampling or not.
-        assert!(always.clone().step(&rec).unwrap().resampled);
+        // In the filter: the same step, resampling or not, on the particles' own maps and on
+        // one shared map (whose particles own their observed paths after a first step).
+        let mut shared = shared_filter(PARTICLES, m);
+        let shared_rec = observe_five(&shared, m);
+        shared.step(&shared_rec).unwrap();
+        let shared_rec = observe_five(&shared, m);
+        let shared_never = uneven(&shared);
+        let shared_always = with_config(&shared_never, |c| c.resample_threshold = 1.0);
         let mut g = c.benchmark_group("resample_in_step");
         g.sample_size(10)
             .sampling_mode(SamplingMode::Flat)
             .warm_up_time(Duration::from_secs(1))
             .measurement_time(Duration::from_secs(2));
-        for (name, f) in [("always", &always), ("never", &never)] {
+        for (name, f, rec) in [
+            ("always", &always, &rec),
+            ("never", &never, &rec),
+            ("always_shared", &shared_always, &shared_rec),
+            ("never_shared", &shared_never, &shared_rec),
+        ] {
+            assert_eq!(
+                f.clone().step(rec).unwrap().resampled,
+                name.starts_with("always")
+            );
             g.bench_function(BenchmarkId::new(name, m), |b| {
                 b.iter_batched(
                     || f.clone(),
                     |mut s| {
-                        s.step(&rec).unwrap();
+                        s.step(rec).unwrap();
                         s
                     },
                     BatchSize::PerIteration,

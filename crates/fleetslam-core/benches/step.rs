@@ -7,12 +7,14 @@
 //! `{v2,v1}`: every iteration steps a fresh clone of a pre-built filter. The clone shares its
 //! maps, so the step copies the trie paths of the 5 landmarks it updates (as in the first step
 //! after a resample) and finds them cold in the cache; cloning and dropping are untimed.
+//! `v2_shared`: as `v2`, but the particles' maps are one shared map (see
+//! `common::shared_filter`), so the step's working set is that map's nodes, not N maps'.
 //! `v2_restep`: one filter steps the same record again and again, so its paths are already
 //! its own (updated in place) and warm: the steady state of re-observing the same landmarks.
 
 mod common;
 
-use common::{grow_map, new_filter, observe_five, with_config};
+use common::{grow_map, new_filter, observe_five, shared_filter, with_config};
 use criterion::{BatchSize, BenchmarkId, Criterion, SamplingMode, criterion_group, criterion_main};
 use fleetslam_core::FastSlam;
 use fleetslam_core::config::FastSlamVersion;
@@ -80,6 +82,9 @@ fn bench_vs_landmarks(c: &mut Criterion) {
         time_restep(&mut g, BenchmarkId::new("v2_restep", m), &slam, &rec);
         let v1 = with_config(&slam, |c| c.version = FastSlamVersion::V1);
         time_step(&mut g, BenchmarkId::new("v1", m), &v1, &rec);
+        let shared = shared_filter(1_000, m);
+        let rec = observe_five(&shared, m);
+        time_step(&mut g, BenchmarkId::new("v2_shared", m), &shared, &rec);
     }
     g.finish();
 }

@@ -28,9 +28,16 @@
 //! A map that is never searched by place (the filter's maps under known association, where
 //! ids name the landmarks) keeps no index ([`LandmarkMap::without_index`]): its writes then
 //! cost only the trie's path.
+//!
+//! A map serialises as the list of its slots. Maps that share nodes (a filter's particles)
+//! serialise together through a node pool ([`MapPool`]), which writes each shared node
+//! once and reads back maps that share what they shared.
 
 use crate::updater::LandmarkGaussian;
 use rpds::HashTrieMapSync;
+
+mod pool;
+pub use pool::{MAX_HEIGHT, MapPool, PoolError, PoolReader, PoolWriter, PooledMap};
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use std::sync::Arc;
 
@@ -567,7 +574,8 @@ mod tests {
         assert_eq!(b.len(), 1);
     }
 
-    fn at(x: f64, y: f64, var: f64) -> Landmark {
+    /// A 2D landmark at (x, y) with variance `var` on each axis (also the pool's tests').
+    pub(super) fn at(x: f64, y: f64, var: f64) -> Landmark {
         Landmark {
             gaussian: LandmarkGaussian {
                 mean: [x, y, 0.0],

@@ -2,6 +2,7 @@
 //! with known ids. Landmark `id` sits at a fixed place (bearings spread by the golden angle,
 //! ranges 2-20 m), so a map of `m` landmarks holds ids `0..m` in slots `0..m`.
 
+use fleetslam_core::filter::Particle;
 use fleetslam_core::log::{LandmarkObservation, Record};
 use fleetslam_core::motion::Motion;
 use fleetslam_core::pose::wrap_angle;
@@ -67,6 +68,26 @@ pub fn grow_map(slam: &mut FastSlam, m: usize) {
         have = end;
     }
     assert_eq!(slam.particles()[0].map.len(), m);
+}
+
+/// A filter of `particles` particles (as [`new_filter`]) whose maps are all one map of `m`
+/// landmarks: every particle descends from one ancestor, as resampling makes them over a run
+/// (landmarks out of view stay shared), so the maps share every trie node until a step writes.
+/// [`grow_map`] gives the other extreme: every particle's map its own.
+pub fn shared_filter(particles: usize, m: usize) -> FastSlam {
+    let mut one = new_filter(1);
+    grow_map(&mut one, m);
+    let mut s = one.snapshot();
+    let ancestor = s.particles.pop().expect("one particle");
+    s.particles = vec![
+        Particle {
+            log_w: -(particles as f64).ln(),
+            ..ancestor
+        };
+        particles
+    ];
+    s.config.particles = particles;
+    FastSlam::from_snapshot(s, one.updater().clone()).unwrap()
 }
 
 /// The same filter state with a changed configuration (particles and maps are shared).

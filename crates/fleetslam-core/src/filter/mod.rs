@@ -47,6 +47,7 @@
 mod association;
 mod gauss;
 mod proposal;
+mod snapshot;
 mod work_item;
 
 use crate::config::{Association, ConfigError, FilterConfig, WORK_ITEMS_PER_THREAD};
@@ -64,6 +65,7 @@ use proposal::draw_scales;
 use rand::Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+pub use snapshot::Snapshot;
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 use work_item::process_chunk;
@@ -229,18 +231,6 @@ pub struct Estimate {
     pub particles: usize,
     pub best_particle: usize,
     pub step: u64,
-}
-
-/// Everything needed to continue a filter bit for bit: the random state is (seed, step).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Snapshot {
-    pub config: FilterConfig,
-    pub robots: Vec<RobotState>,
-    pub particles: Vec<Particle>,
-    pub known_slots: BTreeMap<u32, usize>,
-    pub step: u64,
-    pub ess: f64,
-    pub stats: FilterStats,
 }
 
 /// The filter.

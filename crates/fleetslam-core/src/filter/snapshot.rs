@@ -1,0 +1,165 @@
+//! A filter's snapshot and how it is written: the particles' maps go through one node
+//! pool ([`crate::map::MapPool`]), so a landmark that many particles share is written once,
+//! and a restored filter shares what the running one shared. Snapshots written before the
+//! pool (each particle's map as its list of slots, under `map`) still read.
+
+use super::{FilterStats, Particle, RobotState};
+use crate::config::FilterConfig;
+use crate::map::{LandmarkMap, MapPool, PoolReader, PoolWriter, PooledMap};
+use crate::pose::Pose2;
+use serde::{Deserialize, Deserializer, Serialize, Serializer};
+use std::collections::BTreeMap;
+
+/// Everything needed to continue a filter bit for bit: the random state is (seed, step).
+///
+/// Serialised with the particles' maps in one node pool (`map_nodes`; each particle names
+/// its map's root in it as `map_ref`); a snapshot with each particle's map written whole
+/// (`map`, as before the pool) reads too.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Snapshot {
+    pub config: FilterConfig,
+    pub robots: Vec<RobotState>,
+    pub particles: Vec<Particle>,
+    pub known_slots: BTreeMap<u32, usize>,
+    pub step: u64,
+    pub ess: f64,
+    pub stats: FilterStats,
+}
+
+#[derive(Serialize)]
+struct SnapshotOut<'a> {
+    config: &'a FilterConfig,
+    robots: &'a [RobotState],
+    map_nodes: MapPool,
+    particles: Vec<ParticleOut<'a>>,
+    known_slots: &'a BTreeMap<u32, usize>,
+    step: u64,
+    ess: f64,
+    stats: &'a FilterStats,
+}
+
+#[derive(Serialize)]
+struct ParticleOut<'a> {
+    poses: &'a [Pose2],
+    pose_covs: &'a [[f64; 6]],
+    odometry_scales: &'a [[f64; 2]],
+    map_ref: PooledMap,
+    log_w: f64,
+}
+
+impl Serialize for Snapshot {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        let mut pool = PoolWriter::new();
+        let particles = self
+            .particles
+            .iter()
+            .map(|p| ParticleOut {
+                poses: &p.poses,
+                pose_covs: &p.pose_covs,
+                odometry_scales: &p.odometry_scales,
+                map_ref: pool.add(&p.map),
+                log_w: p.log_w,
+            })
+            .collect();
+        SnapshotOut {
+            config: &self.config,
+            robots: &self.robots,
+            map_nodes: pool.finish(),
+            particles,
+            known_slots: &self.known_slots,
+            step: self.step,
+            ess: self.ess,
+            stats: &self.stats,
+        }
+        .serialize(s)
+    }
+}
+
+#[derive(Deserialize)]
+struct SnapshotIn {
+    config: FilterConfig,
+    robots: Vec<RobotState>,
+    /// Absent in snapshots written before the pool.
+    #[serde(default)]
+    map_nodes: Option<MapPool>,
+    particles: Vec<ParticleIn>,
+    known_slots: BTreeMap<u32, usize>,
+    step: u64,
+    ess: f64,
+    stats: FilterStats,
+}
+
+#[derive(Deserialize)]
+struct ParticleIn {
+    poses: Vec<Pose2>,
+    /// Empty in snapshots written before it existed (see [`Particle::pose_covs`]).
+    #[serde(default)]
+    pose_covs: Vec<[f64; 6]>,
+    /// Empty in snapshots written before it existed (see [`Particle::odometry_scales`]).
+    #[serde(default)]
+    odometry_scales: Vec<[f64; 2]>,
+    /// The map's entry in the snapshot's pool.
+    #[serde(default)]
+    map_ref: Option<PooledMap>,
+    /// The whole map, in snapshots written before the pool.
+    #[serde(default)]
+    map: Option<LandmarkMap>,
+    log_w: f64,
+}
+
+impl<'de> Deserialize<'de> for Snapshot {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        use serde::de::Error;
+        let s = SnapshotIn::deserialize(d)?;
+        let mut pool = s
+            .map_nodes
+            .map(PoolReader::new)
+            .transpose()
+            .map_err(D::Error::custom)?;
+        let particles = s
+            .particles
+            .into_iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let map = match (p.map_ref, p.map, pool.as_mut()) {
+                    (Some(r), None, Some(pool)) => pool
+                        .map(&r)
+                        .map_err(|e| D::Error::custom(format!("particle {i}: {e}")))?,
+                    (None, Some(m), _) => m,
+                    (Some(_), None, None) => {
+                        return Err(D::Error::custom(format!(
+                            "particle {i} names a map in a pool, but the snapshot has no \
+                             `map_nodes`"
+                        )));
+                    }
+                    (Some(_), Some(_), _) => {
+                        return Err(D::Error::custom(format!(
+                            "particle {i} has both `map` and `map_ref`"
+                        )));
+                    }
+                    (None, None, _) => {
+                        return Err(D::Error::custom(format!(
+                            "particle {i} has no map (`map_ref` or `map`)"
+                        )));
+                    }
+                };
+                Ok(Particle {
+                    poses: p.poses,
+                    pose_covs: p.pose_covs,
+                    odometry_scales: p.odometry_scales,
+                    map,
+                    log_w: p.log_w,
+                })
+            })
+            .collect::<Result<Vec<_>, D::Error>>()?;
+        Ok(Snapshot {
+            config: s.config,
+            robots: s.robots,
+            particles,
+            known_slots: s.known_slots,
+            step: s.step,
+            ess: s.ess,
+            stats: s.stats,
+        })
+    }
+}

@@ -5,7 +5,7 @@
 
 use super::{FilterStats, Particle, RobotState};
 use crate::config::FilterConfig;
-use crate::map::{LandmarkMap, MapPool, PoolReader, PoolWriter, PooledMap};
+use crate::map::{LandmarkMap, MapPool, PoolError, PoolReader, PoolWriter, PooledMap};
 use crate::pose::Pose2;
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use std::collections::BTreeMap;
@@ -53,14 +53,17 @@ impl Serialize for Snapshot {
         let particles = self
             .particles
             .iter()
-            .map(|p| ParticleOut {
-                poses: &p.poses,
-                pose_covs: &p.pose_covs,
-                odometry_scales: &p.odometry_scales,
-                map_ref: pool.add(&p.map),
-                log_w: p.log_w,
+            .map(|p| {
+                Ok(ParticleOut {
+                    poses: &p.poses,
+                    pose_covs: &p.pose_covs,
+                    odometry_scales: &p.odometry_scales,
+                    map_ref: pool.add(&p.map)?,
+                    log_w: p.log_w,
+                })
             })
-            .collect();
+            .collect::<Result<Vec<_>, PoolError>>()
+            .map_err(serde::ser::Error::custom)?;
         SnapshotOut {
             config: &self.config,
             robots: &self.robots,

@@ -96,41 +96,56 @@ impl<'a> PoolWriter<'a> {
         Self::default()
     }
 
-    /// Adds `map`'s nodes that the pool does not hold yet; returns the map's entry.
-    pub fn add(&mut self, map: &'a LandmarkMap) -> PooledMap {
-        PooledMap {
-            root: map.root.as_ref().and_then(|n| self.node(n)),
+    /// Adds `map`'s nodes that the pool does not hold yet; returns the map's entry, or an
+    /// error when the pool would hold more nodes than a `u32` index can name.
+    pub fn add(&mut self, map: &'a LandmarkMap) -> Result<PooledMap, PoolError> {
+        let root = match map.root.as_ref() {
+            Some(n) => self.node(n)?,
+            None => None,
+        };
+        Ok(PooledMap {
+            root,
             height: map.height,
             slots: map.slots,
             pending: map.pending.to_vec(),
             unindexed: map.unindexed,
-        }
+        })
     }
 
     /// The pool index of `node`, added after its children if new; `None` for a branch
     /// without children (read back as an absent child, which reads the same).
-    fn node(&mut self, node: &'a Node) -> Option<u32> {
+    fn node(&mut self, node: &'a Node) -> Result<Option<u32>, PoolError> {
         let key = match node {
             Node::Leaf(l) => Arc::as_ptr(l).cast::<()>(),
             Node::Branch(c) => Arc::as_ptr(c).cast::<()>(),
         };
         if let Some(&i) = self.seen.get(&key) {
-            return Some(i);
+            return Ok(Some(i));
         }
         let entry = match node {
             Node::Leaf(l) => PoolNode::Leaf(Box::new(**l)),
             Node::Branch(c) => {
-                let kids = c.each_ref().map(|c| c.as_ref().and_then(|n| self.node(n)));
+                let mut kids = [None; BRANCH];
+                for (kid, child) in kids.iter_mut().zip(c.iter()) {
+                    if let Some(n) = child {
+                        *kid = self.node(n)?;
+                    }
+                }
                 if kids.iter().all(Option::is_none) {
-                    return None;
+                    return Ok(None);
                 }
                 PoolNode::Branch(kids)
             }
         };
-        let i = u32::try_from(self.pool.nodes.len()).expect("fewer than 2^32 trie nodes");
+        let i = u32::try_from(self.pool.nodes.len()).map_err(|_| {
+            PoolError(format!(
+                "the maps have more than {} distinct trie nodes",
+                u32::MAX
+            ))
+        })?;
         self.pool.nodes.push(entry);
         self.seen.insert(key, i);
-        Some(i)
+        Ok(Some(i))
     }
 
     pub fn finish(self) -> MapPool {
@@ -392,7 +407,7 @@ mod tests {
 
     fn write_read(maps: &[LandmarkMap]) -> (MapPool, Vec<LandmarkMap>) {
         let mut w = PoolWriter::new();
-        let entries: Vec<PooledMap> = maps.iter().map(|m| w.add(m)).collect();
+        let entries: Vec<PooledMap> = maps.iter().map(|m| w.add(m).unwrap()).collect();
         let pool = w.finish();
         let json = serde_json::to_string(&pool).unwrap();
         let back: MapPool = serde_json::from_str(&json).unwrap();

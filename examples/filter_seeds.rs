@@ -503,15 +503,9 @@ fn snapshot_sizes(name: &str, slam: &FastSlam) {
         "restored particles differ"
     );
     let value: serde_json::Value = serde_json::from_slice(&pooled).expect("JSON");
-    let nodes = value["map_nodes"].as_array().expect("a pool");
-    let in_pool: usize = nodes
-        .iter()
-        .filter_map(|n| n.get("leaf"))
-        .map(|l| {
-            l.as_array()
-                .map_or(0, |a| a.iter().filter(|x| !x.is_null()).count())
-        })
-        .sum();
+    let pool: fleetslam_core::map::MapPool =
+        serde_json::from_value(value["map_nodes"].clone()).expect("a pool");
+    let in_pool = pool.landmarks();
     println!(
         "{name}, {} particles, {} landmarks in the best map: landmarks written {in_pool} \
          (pool, {} nodes) against {held}; {:.1} MB against {:.1} MB; write {write_pooled:.0} \
@@ -519,7 +513,7 @@ fn snapshot_sizes(name: &str, slam: &FastSlam) {
          {read_whole:.0} ms",
         snap.particles.len(),
         slam.estimate().landmarks.len(),
-        nodes.len(),
+        pool.len(),
         pooled.len() as f64 / 1e6,
         whole.len() as f64 / 1e6,
     );

@@ -150,19 +150,9 @@ fn snapshots_keep_the_maps_sharing_and_old_ones_still_restore() {
     assert!(snap.stats.resamples > 0, "the run must resample");
     let json = serde_json::to_string(&snap).unwrap();
     let value: serde_json::Value = serde_json::from_str(&json).unwrap();
-    let pooled: usize = value["map_nodes"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter_map(|n| n.get("leaf"))
-        .map(|l| {
-            l.as_array()
-                .unwrap()
-                .iter()
-                .filter(|x| !x.is_null())
-                .count()
-        })
-        .sum();
+    let pool: fleetslam_core::map::MapPool =
+        serde_json::from_value(value["map_nodes"].clone()).unwrap();
+    let pooled = pool.landmarks();
     let held: usize = snap.particles.iter().map(|p| p.map.len()).sum();
     assert!(
         pooled * POOL_SHARE_BOUND < held,

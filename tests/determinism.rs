@@ -155,7 +155,7 @@ fn snapshots_keep_the_maps_sharing_and_old_ones_still_restore() {
     let pooled = pool.landmarks();
     let held: usize = snap.particles.iter().map(|p| p.map.len()).sum();
     assert!(
-        pooled * POOL_SHARE_BOUND < held,
+        pooled as f64 * POOL_SHARE_BOUND < held as f64,
         "the pool holds {pooled} landmarks for the particles' {held}"
     );
 
@@ -193,8 +193,9 @@ fn snapshots_keep_the_maps_sharing_and_old_ones_still_restore() {
 }
 
 /// How many times fewer landmarks the pool of the test above must write than its particles
-/// hold: measured 531 written for 1,140 held (2.1 times fewer).
-const POOL_SHARE_BOUND: usize = 2;
+/// hold: measured 582 written for 1,140 held (1.96 times fewer; with the ChaCha8 streams of
+/// sessions 1-16, 531: which particles survive resampling is a draw).
+const POOL_SHARE_BOUND: f64 = 1.9;
 
 #[test]
 fn different_seeds_differ() {

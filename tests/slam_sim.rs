@@ -258,7 +258,10 @@ fn fastslam2_keeps_up_with_1_under_high_control_noise() {
     // The high-control-noise scenario (one robot, 38 landmarks in view, speed noise 0.5 m/s,
     // turn-rate noise 10 deg/s, 10 records/s, accurate sensor), shortened. The full runs
     // are `cargo run --release --example filter_seeds -- control-noise` (README).
-    for seed in [1, 2] {
+    // One seed decides little here (per seed, 2.0's ATE is 0.65-1.8 times 1.0's, its NEES
+    // 0.2-18 times): the test compares means over 8 seeds.
+    let (mut a1, mut a2, mut n1, mut n2, mut fit_nees) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for seed in CONTROL_NOISE_SEEDS {
         let (log, truth) = fleetslam_suite::experiments::control_noise(seed, 20.0);
         let run = |version| {
             fleetslam_suite::experiments::run_and_evaluate(
@@ -273,43 +276,47 @@ fn fastslam2_keeps_up_with_1_under_high_control_noise() {
         };
         let (e1, e2) = (run(FastSlamVersion::V1), run(FastSlamVersion::V2));
         println!("seed {seed}\n1.0: {e1}\n2.0: {e2}");
-        let (a1, a2) = (e1.team.ate_rmse, e2.team.ate_rmse);
-        let (n1, n2) = (
-            e1.team.landmark_nees.unwrap(),
-            e2.team.landmark_nees.unwrap(),
-        );
-        // Measured (50 particles, 20 s): 1.0 0.288 / 0.120 m, 2.0 0.072 / 0.100 m; landmark
-        // NEES (of the landmarks' marginals over the particles) 1.0 514 / 315, 2.0 74 / 119:
-        // 2.0 is the more accurate and the less over-confident, but neither is consistent
-        // yet (NEES should be near 2).
-        assert!(a2 <= a1, "seed {seed}: 2.0 ATE {a2} vs 1.0 {a1}");
-        assert!(
-            n2 < 130.0 && n2 < n1,
-            "seed {seed}: NEES 2.0 {n2}, 1.0 {n1}"
-        );
-        // Almost all of that is the error of the map's frame, which every landmark shares:
-        // after the map's own SE(2) fit onto the truth, 2.0's landmark RMSE is 0.024 /
-        // 0.020 m (against 0.127 / 0.132 m before) and its NEES 1.99 / 2.88, within 3 times
-        // the dimension (1.0: 2.91 / 18.75).
-        let (fit_rmse, fit_nees) = (
+        a1 += e1.team.ate_rmse;
+        a2 += e2.team.ate_rmse;
+        n1 += e1.team.landmark_nees.unwrap();
+        n2 += e2.team.landmark_nees.unwrap();
+        // Almost all of the landmarks' error is the error of the map's frame, which every
+        // landmark shares: after the map's own SE(2) fit onto the truth, 2.0's landmark
+        // RMSE is 0.020-0.029 m and its NEES 1.04-3.26, within 3 times the dimension.
+        let (fit_rmse, nees) = (
             e2.team.landmark_rmse_map_fit.unwrap(),
             e2.team.landmark_nees_map_fit.unwrap(),
         );
         assert!(fit_rmse < 0.03, "seed {seed}: map-fit RMSE {fit_rmse}");
-        assert!(fit_nees < 3.2, "seed {seed}: map-fit NEES {fit_nees}");
+        assert!(nees < 3.5, "seed {seed}: map-fit NEES {nees}");
+        fit_nees += nees;
     }
+    let n = CONTROL_NOISE_SEEDS.count() as f64;
+    let (a1, a2, n1, n2, fit_nees) = (a1 / n, a2 / n, n1 / n, n2 / n, fit_nees / n);
+    // Measured (50 particles, 20 s, seeds 1-8): mean ATE 1.0 0.143 m, 2.0 0.139 m; landmark
+    // NEES (of the landmarks' marginals over the particles) 1.0 376, 2.0 306: 2.0 is no less
+    // accurate and less over-confident, but neither is consistent (NEES should be near 2);
+    // 2.0's map-fit NEES 2.19. With the ChaCha8 streams of sessions 1-16: 0.139 / 0.115 m,
+    // NEES 337 / 375, map-fit 2.54.
+    assert!(a2 <= a1, "mean ATE 2.0 {a2} vs 1.0 {a1}");
+    assert!(n2 < n1, "mean NEES 2.0 {n2}, 1.0 {n1}");
+    assert!(fit_nees < 2.5, "2.0's mean map-fit NEES {fit_nees}");
 }
+
+/// Seeds of the high-control-noise comparison above.
+const CONTROL_NOISE_SEEDS: std::ops::RangeInclusive<u64> = 1..=8;
 
 /// Robots whose odometry over-reports distance by 7.5 % and rotation by 5 % (they truly
 /// move 0.93 and 0.95 of each commanded increment): with the filter estimating each
-/// robot's scales, the trajectories are more accurate than without, and the estimated
-/// scales approach the true ones. Figures of this scenario over 5 seeds and 100 particles
+/// robot's scales, the trajectories are more accurate than without in most seeds and on
+/// average, and the estimated scales move from the prior towards the true ones. Figures of this scenario over 5 seeds and 100 particles
 /// are `cargo run --release --example filter_seeds -- sims` ("biased odometry").
 #[test]
 fn online_odometry_calibration_learns_biased_odometry() {
     use fleetslam_core::config::OdometryCalibration;
     let truth_scale = [0.93, 0.95];
-    for seed in [1, 2] {
+    let mut results = Vec::new();
+    for seed in 1..=10 {
         let sim = small_sim(3, 120.0, seed, |c| c.odometry_scale = truth_scale);
         let run = |cal: OdometryCalibration| {
             let mut cfg = FilterConfig::from_header(&sim.log.header);
@@ -335,18 +342,36 @@ fn online_odometry_calibration_learns_biased_odometry() {
             rotation_walk_per_sqrt_s: 0.001,
         });
         println!("seed {seed}: ATE off {off:.3} m, on {on:.3} m, scales {scales:?}");
-        assert!(unit.iter().all(|s| *s == [1.0; 2]));
-        // Measured: ATE off 0.112 / 0.164 m, on 0.098 / 0.076 m; distance scales 0.940-0.982
-        // (truth 0.93, prior mean 1); the rotation scale is learnt weakly in 120 s (team
-        // mean 0.996 / 0.976, truth 0.95).
-        assert!(on < 0.9 * off, "seed {seed}: {on} vs {off}");
-        for s in &scales {
-            assert!(
-                (s[0] - truth_scale[0]).abs() < 0.055,
-                "seed {seed}: scales {scales:?}"
-            );
-        }
-        let rotation = scales.iter().map(|s| s[1]).sum::<f64>() / scales.len() as f64;
-        assert!(rotation < 1.0, "seed {seed}: scales {scales:?}");
+        results.push((off, on, unit, scales));
     }
+    // Measured, seeds 1-10: ATE off 0.110-0.182 m (mean 0.141), on 0.044-0.267 m (mean
+    // 0.115); the calibration helps by more than 10 % in 7 seeds and hurts in 2 (seeds 2 and
+    // 5, where a robot's distance scale settles at 1.05-1.08). The robots' distance scales
+    // average 0.968 (0.887-1.083 each; truth 0.93, prior mean 1), the rotation scales 0.973
+    // (truth 0.95). With the ChaCha8 streams of sessions 1-16, seeds 1 and 2 gave 0.098 /
+    // 0.076 m against 0.112 / 0.164 m, distance scales 0.940-0.982: a good draw.
+    let n = results.len() as f64;
+    let (mut off_sum, mut on_sum, mut helped, mut distance, mut rotation) = (0.0, 0.0, 0, 0.0, 0.0);
+    for (off, on, unit, scales) in &results {
+        assert!(unit.iter().all(|s| *s == [1.0; 2]));
+        off_sum += off;
+        on_sum += on;
+        helped += usize::from(*on < 0.9 * off);
+        distance += scales.iter().map(|s| s[0]).sum::<f64>() / scales.len() as f64;
+        rotation += scales.iter().map(|s| s[1]).sum::<f64>() / scales.len() as f64;
+    }
+    let (distance, rotation) = (distance / n, rotation / n);
+    assert!(
+        on_sum < 0.85 * off_sum,
+        "mean ATE on {on_sum} vs off {off_sum} (sums)"
+    );
+    assert!(helped >= 7, "the calibration helped in {helped} seeds");
+    assert!(
+        distance < 0.98,
+        "mean distance scale {distance} (truth {truth_scale:?})"
+    );
+    assert!(
+        rotation < 0.98,
+        "mean rotation scale {rotation} (truth {truth_scale:?})"
+    );
 }

@@ -1,12 +1,26 @@
-//! Counter-based random streams: every (seed, step, lane) gets its own ChaCha8 generator.
+//! Counter-based random streams: every (seed, step, lane) gets its own generator.
 //!
 //! A particle's noise at a step depends only on the run's seed, the step number and the
 //! particle's slot, never on which thread ran it or on what other particles drew. That makes
 //! results bit-identical for any rayon pool size, and makes the random state of a whole
 //! filter two integers (seed, step), which snapshots store for crash recovery.
+//!
+//! The filter's streams ([`stream`]) are Xoshiro256++ generators (Blackman and Vigna,
+//! "Scrambled linear pseudorandom number generators", 2021) whose 256-bit state SplitMix64
+//! fills from a hash of (seed, step, lane). A filter step sets up one stream per particle
+//! and draws only a few normal variates from it (two on an odometry record with
+//! calibration), so the cost of setting a stream up is what counts: a ChaCha8 stream, which
+//! the filter used until session 17, computes four 64-byte blocks on its first draw, and
+//! that was a quarter of the filter's instructions on MRCLAM Dataset 6. The localizer's
+//! streams ([`chacha_stream`]) are still ChaCha8: its figures (docs/rtpf.md) were measured
+//! with them.
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
+use rand_xoshiro::Xoshiro256PlusPlus;
+
+/// The generator of one (seed, step, lane) of the filter.
+pub type Stream = Xoshiro256PlusPlus;
 
 /// Lanes at and above this value are reserved for filter-wide draws (resampling, ...).
 pub const LANE_RESAMPLE: u64 = u64::MAX;
@@ -23,18 +37,33 @@ fn splitmix64(mut z: u64) -> u64 {
     z ^ (z >> 31)
 }
 
-/// The generator of `lane` (usually a particle slot) at `step` of a run seeded with `seed`.
+/// The key of (seed, step, lane): a SplitMix64 hash chain.
 #[inline]
-pub fn stream(seed: u64, step: u64, lane: u64) -> ChaCha8Rng {
+fn key(seed: u64, step: u64, lane: u64) -> [u64; 3] {
     let a = splitmix64(seed);
     let b = splitmix64(a ^ step);
     let c = splitmix64(b ^ lane);
+    [a, b, c]
+}
+
+/// The generator of `lane` (usually a particle slot) at `step` of a run seeded with `seed`:
+/// Xoshiro256++ seeded through SplitMix64 (`seed_from_u64`) from the key's last word.
+#[inline]
+pub fn stream(seed: u64, step: u64, lane: u64) -> Stream {
+    Stream::seed_from_u64(key(seed, step, lane)[2])
+}
+
+/// The ChaCha8 generator of (seed, step, lane), as every stream was before session 17; the
+/// localizer draws from these.
+#[inline]
+pub fn chacha_stream(seed: u64, step: u64, lane: u64) -> ChaCha8Rng {
+    let [a, b, c] = key(seed, step, lane);
     let d = splitmix64(c ^ 0x5EED);
-    let mut key = [0u8; 32];
+    let mut bytes = [0u8; 32];
     for (i, w) in [a, b, c, d].iter().enumerate() {
-        key[i * 8..i * 8 + 8].copy_from_slice(&w.to_le_bytes());
+        bytes[i * 8..i * 8 + 8].copy_from_slice(&w.to_le_bytes());
     }
-    ChaCha8Rng::from_seed(key)
+    ChaCha8Rng::from_seed(bytes)
 }
 
 #[cfg(test)]
@@ -49,5 +78,32 @@ mod tests {
         assert_ne!(a, stream(1, 2, 4).random::<u64>());
         assert_ne!(a, stream(1, 3, 3).random::<u64>());
         assert_ne!(a, stream(2, 2, 3).random::<u64>());
+        let c: u64 = chacha_stream(1, 2, 3).random();
+        assert_eq!(c, chacha_stream(1, 2, 3).random::<u64>());
+        assert_ne!(c, chacha_stream(1, 2, 4).random::<u64>());
+        assert_ne!(c, chacha_stream(1, 3, 3).random::<u64>());
+        assert_ne!(c, chacha_stream(2, 2, 3).random::<u64>());
+    }
+
+    /// Neighbouring lanes and steps are independent: the first uniform draws of 4,096
+    /// particles' streams at one step, and of one lane over 4,096 steps, have the mean and
+    /// variance of U(0, 1) (within 4 standard errors), and consecutive lanes' draws are
+    /// uncorrelated.
+    #[test]
+    fn neighbouring_streams_are_independent() {
+        let n = 4096;
+        let check = |u: &[f64]| {
+            let m = u.iter().sum::<f64>() / n as f64;
+            let v = u.iter().map(|x| (x - m).powi(2)).sum::<f64>() / n as f64;
+            let c = u.windows(2).map(|w| (w[0] - m) * (w[1] - m)).sum::<f64>() / n as f64 / v;
+            let se = (1.0 / 12.0 / n as f64).sqrt();
+            assert!((m - 0.5).abs() < 4.0 * se, "mean {m}");
+            assert!((v - 1.0 / 12.0).abs() < 0.01, "variance {v}");
+            assert!(c.abs() < 4.0 / (n as f64).sqrt(), "lag-1 correlation {c}");
+        };
+        let lanes: Vec<f64> = (0..n).map(|i| stream(7, 11, i).random()).collect();
+        check(&lanes);
+        let steps: Vec<f64> = (0..n).map(|t| stream(7, t, 5).random()).collect();
+        check(&steps);
     }
 }

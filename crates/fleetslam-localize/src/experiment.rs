@@ -42,7 +42,7 @@ use crate::rtpf::RtpfParams;
 use fleetslam_core::log::{LandmarkObservation, Record};
 use fleetslam_core::motion::{AckermannParams, Motion, MotionModel, MotionNoise};
 use fleetslam_core::pose::{Pose2, wrap_angle};
-use fleetslam_core::rng::stream;
+use fleetslam_core::rng::chacha_stream as stream;
 use fleetslam_core::sensor::{LandmarkKind, SensorNoise, range_bearing_predict};
 use fleetslam_core::updater::LandmarkGaussian;
 use rand::Rng;

@@ -24,9 +24,9 @@
 //! [`crate::config::Policy`] decides how the sample budget `N` is spent (see
 //! [`crate::rtpf`] for the mixture of the real-time particle filter).
 //!
-//! Every random draw comes from [`fleetslam_core::rng::stream`] keyed by (seed, update,
-//! lane), with one lane per sample and sample set, so the results do not depend on the
-//! number of threads, and the whole state (samples, weights, counters and the pending
+//! Every random draw comes from [`fleetslam_core::rng::chacha_stream`] keyed by (seed,
+//! update, lane), with one lane per sample and sample set, so the results do not depend on
+//! the number of threads, and the whole state (samples, weights, counters and the pending
 //! records) serialises: a localizer restored from JSON continues bit for bit.
 
 use crate::config::{LocalizeConfig, Models, Policy, Window};
@@ -37,7 +37,7 @@ use fleetslam_core::log::Record;
 use fleetslam_core::motion::Motion;
 use fleetslam_core::pose::{Pose2, weighted_mean_pose, wrap_angle};
 use fleetslam_core::resample::normalize_log_weights;
-use fleetslam_core::rng::stream;
+use fleetslam_core::rng::chacha_stream as stream;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;

@@ -5,7 +5,7 @@ use fleetslam_core::config::FilterConfig;
 use fleetslam_core::log::{LandmarkObservation, Record};
 use fleetslam_core::motion::{Motion, MotionModel, MotionNoise};
 use fleetslam_core::pose::{Pose2, PoseGaussian, wrap_angle};
-use fleetslam_core::rng::stream;
+use fleetslam_core::rng::chacha_stream as stream;
 use fleetslam_core::sensor::{LandmarkKind, SensorNoise, range_bearing_predict};
 use fleetslam_core::updater::LandmarkGaussian;
 use fleetslam_localize::config::{KldParams, Window};

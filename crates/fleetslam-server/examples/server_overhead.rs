@@ -30,6 +30,7 @@ use serde_json::{Value, json};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
+use tokio_tungstenite::tungstenite::Message;
 
 /// Records per request (as `fleetslam replay --batch 20`).
 const BATCH: usize = 20;
@@ -107,7 +108,8 @@ async fn server_round(log: &Log, particles: usize, batch: usize) -> Round {
     let listener = tokio::spawn(async move {
         let mut heard = Heard::default();
         while let Some(Ok(msg)) = ws.next().await {
-            let Ok(text) = msg.into_text() else { continue };
+            // Pings and pongs carry no message.
+            let Message::Text(text) = msg else { continue };
             let v: Value = serde_json::from_str(&text).unwrap();
             match v["type"].as_str() {
                 Some("state") => {
@@ -125,7 +127,7 @@ async fn server_round(log: &Log, particles: usize, batch: usize) -> Round {
                                 _ = &mut deadline => return heard,
                                 m = ws.next() => {
                                     let Some(Ok(m)) = m else { return heard };
-                                    let Ok(text) = m.into_text() else { continue };
+                                    let Message::Text(text) = m else { continue };
                                     let v: Value = serde_json::from_str(&text).unwrap();
                                     if v["type"] == "state" {
                                         heard.states += 1;

@@ -3,13 +3,13 @@
 //! [`crate::sensor::MeasurementModel`].
 
 use crate::pose::{Pose2, wrap_angle};
+use crate::rng::Stream;
 use nalgebra::{Matrix3, Vector3};
 use rand::Rng;
-use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
 #[inline]
-pub(super) fn normal3(rng: &mut ChaCha8Rng) -> Vector3<f64> {
+pub(super) fn normal3(rng: &mut Stream) -> Vector3<f64> {
     Vector3::new(
         rng.sample(StandardNormal),
         rng.sample(StandardNormal),
@@ -58,7 +58,7 @@ pub(super) fn compose_jacobian((s, c): (f64, f64), inc: &Pose2) -> Matrix3<f64> 
 
 /// A sample of `N(mean, cov)` (the mean itself when `cov` has no Cholesky factor, which
 /// only a covariance with a non-finite entry lacks after the jitter).
-pub(super) fn sample_gaussian(mean: &Pose2, cov: &Matrix3<f64>, rng: &mut ChaCha8Rng) -> Pose2 {
+pub(super) fn sample_gaussian(mean: &Pose2, cov: &Matrix3<f64>, rng: &mut Stream) -> Pose2 {
     match cholesky_psd(cov) {
         Some(l) => {
             let e = l * normal3(rng);

@@ -251,11 +251,11 @@ pub struct FastSlam {
     /// same bits as computing it again); empty before the first step. Estimates read it
     /// instead of taking an `exp` per particle on every record.
     weights: Vec<f64>,
-    /// `(sin θ, cos θ)` of robot `headings_of`'s heading in each particle, computed in
-    /// parallel by the last step (which moved that robot), for its mean pose; empty or of
-    /// another robot otherwise.
-    headings: Vec<(f64, f64)>,
-    headings_of: Option<usize>,
+    /// `headings[r][i]`: `(sin θ, cos θ)` of robot r's heading in particle i, computed in
+    /// parallel by the last step that moved robot r (no other step changes that pose), for
+    /// its mean pose and for its next step's motion; a robot's list is empty (and computed
+    /// when needed) before its first step and after a restore.
+    headings: Vec<Vec<(f64, f64)>>,
 }
 
 /// The association thresholds and clutter densities that follow from a configuration (χ²
@@ -335,6 +335,9 @@ struct StepCtx<'a> {
     /// Whether FastSLAM 2.0 defers the pose sampling of records without landmark
     /// observations (`defer_pose_sampling` for the filter's current number of robots).
     defer: bool,
+    /// Whether the headings handed to a work item hold `(sin θ, cos θ)` of the robot's pose
+    /// before the step (else each particle computes them).
+    headings_known: bool,
 }
 
 impl FastSlam {
@@ -382,7 +385,6 @@ impl FastSlam {
             stats: FilterStats::default(),
             weights: Vec::new(),
             headings: Vec::new(),
-            headings_of: None,
         })
     }
 
@@ -605,6 +607,14 @@ impl FastSlam {
             }
         }
 
+        let reweighs = !obs.is_empty() || !sightings.is_empty();
+        let best_before = if reweighs { self.best_index() } else { 0 };
+        let slots_before = self.particles[best_before].map.len();
+        let n = self.particles.len();
+        self.headings.resize(self.robots.len(), Vec::new());
+        let headings = &mut self.headings[r];
+        let headings_known = headings.len() == n;
+        headings.resize(n, (0.0, 0.0));
         let d = self.derived;
         let ctx = StepCtx {
             cfg,
@@ -623,25 +633,23 @@ impl FastSlam {
             clutter: d.clutter,
             sighting_clutter: d.sighting_clutter,
             defer: cfg.defer_pose_sampling.defers(self.robots.len()),
+            headings_known,
         };
-        let best_before = self.best_index();
-        let slots_before = self.particles[best_before].map.len();
-        let batch = work_item_len(self.particles.len(), rayon::current_num_threads());
-        self.headings.resize(self.particles.len(), (0.0, 0.0));
+
+        let batch = work_item_len(n, rayon::current_num_threads());
         let step_stats = self
             .particles
             .par_chunks_mut(batch)
-            .zip(self.headings.par_chunks_mut(batch))
+            .zip(headings.par_chunks_mut(batch))
             .enumerate()
             .map(|(c, (chunk, headings))| {
-                let stats = process_chunk(&ctx, c * batch, chunk);
+                let stats = process_chunk(&ctx, c * batch, chunk, headings);
                 for (p, h) in chunk.iter().zip(headings) {
                     *h = p.poses[r].theta.sin_cos();
                 }
                 stats
             })
             .reduce(FilterStats::default, FilterStats::add);
-        self.headings_of = Some(r);
 
         for (id, s) in new_ids {
             self.known_slots.insert(id, s);
@@ -654,25 +662,26 @@ impl FastSlam {
         self.stats.steps += 1;
         self.stats.observations += obs.len() as u64;
 
-        let mut log_w: Vec<f64> = self.particles.iter().map(|p| p.log_w).collect();
-        self.ess = normalize_log_weights_keeping(&mut log_w, &mut self.weights);
-        for (p, w) in self.particles.iter_mut().zip(&log_w) {
-            p.log_w = *w;
-        }
-        let best = self.best_index();
-        let (added, removed) = if best == best_before {
-            let now = self.particles[best].map.len();
-            (
-                now.saturating_sub(slots_before),
-                slots_before.saturating_sub(now),
-            )
-        } else {
-            (0, 0)
-        };
-        let n = self.particles.len() as f64;
-        let resampled = self.ess < self.config.resample_threshold * n;
-        if resampled {
-            self.resample(&log_w);
+        // A record without observations or sightings changes no weight and no map: the
+        // weights stay as the last step normalised them, and the ESS and the decision to
+        // resample with them (the last step already took it).
+        let (mut added, mut removed, mut resampled) = (0, 0, false);
+        if reweighs {
+            let mut log_w: Vec<f64> = self.particles.iter().map(|p| p.log_w).collect();
+            self.ess = normalize_log_weights_keeping(&mut log_w, &mut self.weights);
+            for (p, w) in self.particles.iter_mut().zip(&log_w) {
+                p.log_w = *w;
+            }
+            let best = self.best_index();
+            if best == best_before {
+                let now = self.particles[best].map.len();
+                added = now.saturating_sub(slots_before);
+                removed = slots_before.saturating_sub(now);
+            }
+            resampled = self.ess < self.config.resample_threshold * n as f64;
+            if resampled {
+                self.resample(&log_w);
+            }
         }
         self.step += 1;
         Ok(StepReport {
@@ -692,8 +701,8 @@ impl FastSlam {
         let uniform = -(n as f64).ln();
         self.weights.clear();
         self.weights.resize(n, uniform.exp());
-        if self.headings.len() == n {
-            self.headings = idx.iter().map(|&i| self.headings[i]).collect();
+        for h in self.headings.iter_mut().filter(|h| h.len() == n) {
+            *h = idx.iter().map(|&i| h[i]).collect();
         }
         // Each parent's last child takes the parent itself; only the others are copies.
         let mut children = vec![0u32; n];
@@ -737,10 +746,11 @@ impl FastSlam {
     /// Weighted mean pose of one robot.
     pub fn mean_pose(&self, robot: usize) -> Pose2 {
         let particles = self.particles.iter().enumerate();
-        if self.headings_of == Some(robot) && self.headings.len() == self.particles.len() {
+        let headings = self.headings.get(robot);
+        if let Some(headings) = headings.filter(|h| h.len() == self.particles.len()) {
             weighted_mean_pose_sc(
                 particles
-                    .zip(&self.headings)
+                    .zip(headings)
                     .map(|((i, p), &sc)| (&p.poses[robot], sc, self.weight(i))),
             )
         } else {
@@ -940,7 +950,6 @@ impl FastSlam {
             stats: s.stats,
             weights: Vec::new(),
             headings: Vec::new(),
-            headings_of: None,
         })
     }
 }
@@ -1080,11 +1089,26 @@ mod tests {
                 3 | 6 => moving("s", 1.0 + k as f64, &[], &[]),
                 _ => moving("r", 1.0 + k as f64, &[[2.0 - 0.1 * k as f64, 0.0]], &[]),
             };
-            resampled[usize::from(f.step(&rec).unwrap().resampled)] = true;
+            let before: Vec<u64> = f.particles().iter().map(|p| p.log_w.to_bits()).collect();
+            let (ess, kept) = (f.ess(), f.weights.clone());
+            let report = f.step(&rec).unwrap();
+            resampled[usize::from(report.resampled)] = true;
             assert_eq!(f.weights.len(), f.particles().len());
-            assert_eq!(f.headings_of, Some(usize::from(rec.robot == "s")));
+            if rec.landmarks.is_empty() && rec.robots.is_empty() {
+                // Nothing to weigh: weights, ESS and kept weights stay, bit for bit.
+                let after = f.particles().iter().map(|p| p.log_w.to_bits());
+                assert!(after.eq(before) && !report.resampled);
+                assert_eq!((f.ess().to_bits(), &f.weights), (ess.to_bits(), &kept));
+            }
             for r in 0..2 {
                 assert_eq!(f.mean_pose(r), direct(&f, r));
+                // A robot's kept headings are its poses' own, whichever robot moved last.
+                let kept = &f.headings[r];
+                let own = f.particles().iter().map(|p| p.poses[r].theta.sin_cos());
+                // (robot "s", 1, moves first at step 3)
+                if r == 0 || k >= 3 {
+                    assert!(kept.iter().copied().eq(own), "robot {r} after step {k}");
+                }
             }
         }
         assert_eq!(resampled, [true, true], "both kinds of step were taken");
@@ -1558,6 +1582,7 @@ mod tests {
             clutter: -10.0,
             sighting_clutter: -10.0,
             defer: true,
+            headings_known: false,
         };
         let q = RangeBearingModel::noise(&cfg.sensor_noise);
         let part = &f.particles()[0];

@@ -7,12 +7,11 @@ use super::{Action, Particle, StepCtx};
 use crate::config::OdometryCalibration;
 use crate::motion::scale_increment;
 use crate::pose::{Pose2, wrap_angle};
-use crate::rng::{LANE_CALIBRATION, stream};
+use crate::rng::{LANE_CALIBRATION, Stream, stream};
 use crate::sensor::{MeasurementModel, RangeBearingModel};
 use crate::stats::{gaussian_log_density, log_add_exp};
 use nalgebra::{Matrix2, Matrix2x3, Matrix3, SMatrix, Vector2, Vector3};
 use rand::Rng;
-use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
 /// Log-likelihood of a sighting `z` (range, bearing) of a robot at `target` (position
@@ -54,7 +53,7 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
     pc0: &Matrix3<f64>,
     acts: &mut [Action],
     best_ll: &[f64],
-    rng: &mut ChaCha8Rng,
+    rng: &mut Stream,
 ) -> Option<(Pose2, f64)> {
     let outlier = ctx.cfg.association_params.outlier;
     let mut mu = Vector3::new(mean0.x, mean0.y, mean0.theta);
@@ -199,7 +198,7 @@ pub(super) fn sample_motion(
     ctx: &StepCtx<'_>,
     prev: &Pose2,
     inc: &Pose2,
-    rng: &mut ChaCha8Rng,
+    rng: &mut Stream,
 ) -> Pose2 {
     let e = Pose2::new(
         ctx.std[0] * rng.sample::<f64, _>(StandardNormal),
@@ -224,7 +223,7 @@ pub(super) fn draw_scales(cal: &OdometryCalibration, seed: u64, step: u64, i: us
 /// The record's increment as this particle's odometry scales of the robot see it, after
 /// their random walk over the motion's duration (which draws from `rng` only when
 /// calibration walks).
-pub(super) fn scaled_increment(ctx: &StepCtx<'_>, p: &mut Particle, rng: &mut ChaCha8Rng) -> Pose2 {
+pub(super) fn scaled_increment(ctx: &StepCtx<'_>, p: &mut Particle, rng: &mut Stream) -> Pose2 {
     let cal = &ctx.cfg.odometry_calibration;
     let s = &mut p.odometry_scales[ctx.robot];
     if cal.walks() && ctx.dt > 0.0 {

@@ -42,8 +42,14 @@ impl Decisions {
     }
 }
 
-/// One work item: `chunk` holds particles `base..base + chunk.len()`.
-pub(super) fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particle]) -> FilterStats {
+/// One work item: `chunk` holds particles `base..base + chunk.len()`, `headings` their
+/// `(sin θ, cos θ)` of the robot's heading before the step when `ctx.headings_known`.
+pub(super) fn process_chunk(
+    ctx: &StepCtx<'_>,
+    base: usize,
+    chunk: &mut [Particle],
+    headings: &[(f64, f64)],
+) -> FilterStats {
     let cfg = ctx.cfg;
     let mut stats = FilterStats::default();
     if ctx.known_len > 0 {
@@ -56,9 +62,11 @@ pub(super) fn process_chunk(ctx: &StepCtx<'_>, base: usize, chunk: &mut [Particl
     let defer = cfg.version == FastSlamVersion::V2 && ctx.defer && ctx.obs.is_empty();
     let decided = match cfg.landmark_kind {
         LandmarkKind::RangeBearing2d => {
-            move_poses::<2, RangeBearingModel>(ctx, base, chunk, defer, &mut stats)
+            move_poses::<2, RangeBearingModel>(ctx, base, chunk, headings, defer, &mut stats)
         }
-        LandmarkKind::Point3d => move_poses::<3, Point3Model>(ctx, base, chunk, defer, &mut stats),
+        LandmarkKind::Point3d => {
+            move_poses::<3, Point3Model>(ctx, base, chunk, headings, defer, &mut stats)
+        }
     };
     let observed = update_landmarks(ctx, chunk, &decided, &mut stats);
     if !ctx.sightings.is_empty() && !defer {
@@ -85,6 +93,7 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
     ctx: &StepCtx<'_>,
     base: usize,
     chunk: &mut [Particle],
+    headings: &[(f64, f64)],
     defer: bool,
     stats: &mut FilterStats,
 ) -> Decisions {
@@ -102,8 +111,7 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
     for (i, p) in chunk.iter_mut().enumerate() {
         let prev = p.poses[r];
         let prev_cov = p.pose_covs[r];
-        // The particle's stream of this step, set up here: a generator is a few hundred
-        // bytes, too many to gather for a whole work item.
+        // The particle's stream of this step (32 bytes, a few dozen instructions to seed).
         let rng = &mut stream(cfg.seed, ctx.step, (base + i) as u64);
         let acts = &mut actions[i * nobs..(i + 1) * nobs];
         let bll = &mut best_ll[i * nobs..(i + 1) * nobs];
@@ -113,7 +121,11 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
         } else {
             ctx.inc
         };
-        let sc = prev.theta.sin_cos();
+        let sc = if ctx.headings_known {
+            headings[i]
+        } else {
+            prev.theta.sin_cos()
+        };
         let mean0 = prev.compose_sc(&inc, sc);
         let mut pc0 = covariance_in_world_sc(sc, &ctx.var);
         if !point {

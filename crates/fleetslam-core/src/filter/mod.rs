@@ -608,8 +608,14 @@ impl FastSlam {
         }
 
         let reweighs = !obs.is_empty() || !sightings.is_empty();
-        let best_before = if reweighs { self.best_index() } else { 0 };
-        let slots_before = self.particles[best_before].map.len();
+        // The best particle and its map's size before the step, for the landmarks a
+        // reweighing step added or removed.
+        let (best_before, slots_before) = if reweighs {
+            let best = self.best_index();
+            (best, self.particles[best].map.len())
+        } else {
+            (0, 0)
+        };
         let n = self.particles.len();
         self.headings.resize(self.robots.len(), Vec::new());
         let headings = &mut self.headings[r];

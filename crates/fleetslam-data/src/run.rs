@@ -301,7 +301,7 @@ pub fn run_log_joining(
     log: &Log,
     which: TrajectoryEstimate,
     opts: &JoinOptions,
-    mut progress: impl FnMut(usize, usize),
+    mut progress: impl FnMut(usize, usize) + Send,
 ) -> Result<RunOutput, LocalizeError> {
     for u in &opts.unknown {
         if !log.header.robots.iter().any(|r| &r.id == u) {
@@ -351,30 +351,34 @@ pub fn run_log_joining(
     let mut step_ns = Vec::with_capacity(order.len());
     let start = Instant::now();
     let total = order.len();
-    for (k, &i) in order.iter().enumerate() {
-        let rec = &log.records[i];
-        if is_unknown(&rec.robot) && opts.join_at.is_some_and(|t| rec.t < t) {
-            *dropped.entry(rec.robot.clone()).or_insert(0) += 1;
-            continue;
+    // On a thread of rayon's pool, as in `run_log`.
+    rayon::scope(|_| -> Result<(), LocalizeError> {
+        for (k, &i) in order.iter().enumerate() {
+            let rec = &log.records[i];
+            if is_unknown(&rec.robot) && opts.join_at.is_some_and(|t| rec.t < t) {
+                *dropped.entry(rec.robot.clone()).or_insert(0) += 1;
+                continue;
+            }
+            let t0 = Instant::now();
+            let step = run.step(rec)?;
+            step_ns.push(t0.elapsed().as_nanos() as u64);
+            if step.phase == fleetslam_localize::Phase::Mapping {
+                let r = run
+                    .slam()
+                    .robot_index(&rec.robot)
+                    .expect("a mapping robot is in the filter");
+                let pose = pose_of(run.slam(), which, r);
+                trajectories
+                    .entry(rec.robot.clone())
+                    .or_default()
+                    .push(TrajectoryPoint { t: rec.t, pose });
+            }
+            if k % 256 == 0 {
+                progress(k, total);
+            }
         }
-        let t0 = Instant::now();
-        let step = run.step(rec)?;
-        step_ns.push(t0.elapsed().as_nanos() as u64);
-        if step.phase == fleetslam_localize::Phase::Mapping {
-            let r = run
-                .slam()
-                .robot_index(&rec.robot)
-                .expect("a mapping robot is in the filter");
-            let pose = pose_of(run.slam(), which, r);
-            trajectories
-                .entry(rec.robot.clone())
-                .or_default()
-                .push(TrajectoryPoint { t: rec.t, pose });
-        }
-        if k % 256 == 0 {
-            progress(k, total);
-        }
-    }
+        Ok(())
+    })?;
     progress(total, total);
     let wall = start.elapsed().as_secs_f64();
     let mut out = finish(run.slam(), trajectories, step_ns, wall, 0, shared_frame);

@@ -94,23 +94,52 @@ impl PoseGaussian {
     }
 }
 
-/// Weighted circular/linear mean of poses. Weights need not be normalised.
-pub fn weighted_mean_pose<'a>(items: impl Iterator<Item = (&'a Pose2, f64)>) -> Pose2 {
-    weighted_mean_pose_sc(items.map(|(p, w)| (p, p.theta.sin_cos(), w)))
+/// A pose's position and its heading's `(sin θ, cos θ)`: what a weighted mean of poses
+/// reads, kept side by side so that the mean reads contiguous memory.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct PositionHeading {
+    pub x: f64,
+    pub y: f64,
+    /// `sin θ`.
+    pub sin: f64,
+    /// `cos θ`.
+    pub cos: f64,
 }
 
-/// [`weighted_mean_pose`] of poses given with their headings' `(sin θ, cos θ)`, computed
-/// once by the caller.
-pub fn weighted_mean_pose_sc<'a>(
-    items: impl Iterator<Item = (&'a Pose2, (f64, f64), f64)>,
-) -> Pose2 {
+impl PositionHeading {
+    #[inline]
+    pub fn of(p: &Pose2) -> Self {
+        let (sin, cos) = p.theta.sin_cos();
+        Self {
+            x: p.x,
+            y: p.y,
+            sin,
+            cos,
+        }
+    }
+
+    /// `(sin θ, cos θ)`.
+    #[inline]
+    pub fn sc(&self) -> (f64, f64) {
+        (self.sin, self.cos)
+    }
+}
+
+/// Weighted circular/linear mean of poses. Weights need not be normalised.
+pub fn weighted_mean_pose<'a>(items: impl Iterator<Item = (&'a Pose2, f64)>) -> Pose2 {
+    weighted_mean_pose_sc(items.map(|(p, w)| (PositionHeading::of(p), w)))
+}
+
+/// [`weighted_mean_pose`] of poses given as [`PositionHeading`]s, computed once by the
+/// caller.
+pub fn weighted_mean_pose_sc(items: impl Iterator<Item = (PositionHeading, f64)>) -> Pose2 {
     let (mut sw, mut sx, mut sy, mut ss, mut sc) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    for (p, (s, c), w) in items {
+    for (p, w) in items {
         sw += w;
         sx += w * p.x;
         sy += w * p.y;
-        ss += w * s;
-        sc += w * c;
+        ss += w * p.sin;
+        sc += w * p.cos;
     }
     if sw <= 0.0 {
         return Pose2::default();

@@ -7,17 +7,23 @@
 //!
 //! ```sh
 //! cargo run --profile test -p fleetslam-server --example server_overhead -- \
-//!     ../shared/datasets/mrclam-dataset6 [PARTICLES] [ROUNDS] [DURATION_S]
+//!     ../shared/datasets/mrclam-dataset6 [PARTICLES] [ROUNDS] [DURATION_S|all] [RUNS]
 //! ```
 //!
 //! The source is a UTIAS MRCLAM data set's directory, imported as `fleetslam import mrclam`
-//! does (its first `DURATION_S` seconds; all of it when omitted), or a log file
+//! does (its first `DURATION_S` seconds; all of it when omitted or `all`), or a log file
 //! (`log.ndjson`). `PARTICLES` defaults to 1,000 and `ROUNDS` to 3; seed 1, [`BATCH`]
 //! records per request.
 //! Per round it prints the offline wall time, the server's wall time (from the first post
 //! until the run's end is answered: every record stored, applied and the run's result
-//! stored) and their ratio, and checks that the server's trajectories and landmarks equal
-//! the offline run's bit for bit; then the median ratio.
+//! stored) and their ratio, the longest wait between two states the listener received, and
+//! checks that the server's trajectories and landmarks equal the offline run's bit for bit;
+//! then the median ratio.
+//!
+//! With `RUNS` above 1 (default 1), that many runs of the log are posted to one server at
+//! the same time, each by its own clients and with its own listener: each run's wall time
+//! and longest gap between states show how the runs share the machine, and the ratio is the
+//! time until the last run ended against `RUNS` offline runs one after another.
 
 use fleetslam_core::config::FilterConfig;
 use fleetslam_core::filter::FastSlam;
@@ -42,6 +48,20 @@ struct Heard {
     events: u64,
     /// `applied` of the newest state received.
     last_applied: u64,
+    /// The longest wait between two states received before the run's end was announced.
+    max_gap: Duration,
+}
+
+impl Heard {
+    /// Takes in a state message received at `at`, after the previous one (if any) at `last`.
+    fn state(&mut self, v: &Value, at: Instant, last: &mut Option<Instant>) {
+        self.states += 1;
+        self.last_applied = v["state"]["applied"].as_u64().unwrap();
+        if let Some(l) = *last {
+            self.max_gap = self.max_gap.max(at - l);
+        }
+        *last = Some(at);
+    }
 }
 
 async fn post(c: &reqwest::Client, url: &str, token: Option<&str>, body: &Value) -> Value {
@@ -56,9 +76,9 @@ async fn post(c: &reqwest::Client, url: &str, token: Option<&str>, body: &Value)
     v
 }
 
-/// What one server round measured and returned.
+/// What one run of a server round measured and returned.
 struct Round {
-    /// Wall time [s].
+    /// Wall time from the first post of the round until this run's end was answered [s].
     wall: f64,
     /// Of which the filter's steps [s].
     steps_s: f64,
@@ -69,19 +89,24 @@ struct Round {
     busy: u64,
 }
 
-async fn server_round(log: &Log, particles: usize, batch: usize) -> Round {
-    let dir = tempfile::tempdir().unwrap();
-    let running = fleetslam_server::server::start(&ServerConfig {
-        bind: "127.0.0.1:0".into(),
-        data_dir: dir.path().to_path_buf(),
-        ..ServerConfig::default()
-    })
-    .await
-    .unwrap();
-    let base = format!("http://{}", running.addr);
-    let c = reqwest::Client::new();
+/// A run created on the server, its robots' tokens and its listener.
+struct Posting {
+    run: String,
+    tokens: Vec<(String, String)>,
+    listener: tokio::task::JoinHandle<Heard>,
+}
+
+/// Creates a run for `log`, adds its robots and connects a websocket listener to its `live`
+/// stream, which reads every message, as the dashboard does.
+async fn create_run(
+    c: &reqwest::Client,
+    addr: std::net::SocketAddr,
+    log: &Log,
+    particles: usize,
+) -> Posting {
+    let base = format!("http://{addr}");
     let v = post(
-        &c,
+        c,
         &format!("{base}/v1/runs"),
         None,
         &json!({"name": "server_overhead", "header": log.header,
@@ -92,7 +117,7 @@ async fn server_round(log: &Log, particles: usize, batch: usize) -> Round {
     let mut tokens = Vec::new();
     for r in &log.header.robots {
         let v = post(
-            &c,
+            c,
             &format!("{base}/v1/runs/{run}/robots"),
             None,
             &json!({"id": r.id, "start": r.start, "t0": r.t0}),
@@ -100,22 +125,18 @@ async fn server_round(log: &Log, particles: usize, batch: usize) -> Round {
         .await;
         tokens.push((r.id.clone(), v["token"].as_str().unwrap().to_string()));
     }
-    // The listener reads every message, as the dashboard does.
-    let (mut ws, _) =
-        tokio_tungstenite::connect_async(format!("ws://{}/v1/runs/{run}/live", running.addr))
-            .await
-            .unwrap();
+    let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/v1/runs/{run}/live"))
+        .await
+        .unwrap();
     let listener = tokio::spawn(async move {
         let mut heard = Heard::default();
+        let mut last = None;
         while let Some(Ok(msg)) = ws.next().await {
             // Pings and pongs carry no message.
             let Message::Text(text) = msg else { continue };
             let v: Value = serde_json::from_str(&text).unwrap();
             match v["type"].as_str() {
-                Some("state") => {
-                    heard.states += 1;
-                    heard.last_applied = v["state"]["applied"].as_u64().unwrap();
-                }
+                Some("state") => heard.state(&v, Instant::now(), &mut last),
                 Some("event") => {
                     heard.events += 1;
                     if v["event"]["event"] == "run_ended" {
@@ -130,9 +151,8 @@ async fn server_round(log: &Log, particles: usize, batch: usize) -> Round {
                                     let Message::Text(text) = m else { continue };
                                     let v: Value = serde_json::from_str(&text).unwrap();
                                     if v["type"] == "state" {
-                                        heard.states += 1;
-                                        heard.last_applied =
-                                            v["state"]["applied"].as_u64().unwrap();
+                                        // The run's end is not a gap between states.
+                                        heard.state(&v, Instant::now(), &mut None);
                                         if v["state"]["status"] == "ended" {
                                             return heard;
                                         }
@@ -147,8 +167,26 @@ async fn server_round(log: &Log, particles: usize, batch: usize) -> Round {
         }
         heard
     });
+    Posting {
+        run,
+        tokens,
+        listener,
+    }
+}
+
+/// Posts `log` to a run as its robots would (one client per robot, [`BATCH`] records per
+/// request), ends the run and returns the seconds from `started` until the end is answered
+/// and the number of requests retried after 503.
+async fn post_run(
+    c: reqwest::Client,
+    base: String,
+    log: Arc<Log>,
+    run: String,
+    tokens: Vec<(String, String)>,
+    batch: usize,
+    started: Instant,
+) -> (f64, u64) {
     let busy = Arc::new(AtomicU64::new(0));
-    let started = Instant::now();
     let mut clients = Vec::new();
     for (robot, token) in tokens {
         let records: Vec<Record> = log
@@ -194,47 +232,89 @@ async fn server_round(log: &Log, particles: usize, batch: usize) -> Round {
         .await
         .unwrap();
     assert!(resp.status().is_success(), "{}", resp.status());
-    let wall = started.elapsed().as_secs_f64();
-    let heard = tokio::time::timeout(Duration::from_secs(10), listener)
-        .await
-        .expect("the websocket listener heard the run end")
-        .unwrap();
-    let get = |path: String| {
-        let c = c.clone();
-        async move {
-            c.get(path)
-                .send()
-                .await
-                .unwrap()
-                .json::<Value>()
-                .await
-                .unwrap()
-        }
-    };
-    let traj = get(format!("{base}/v1/runs/{run}/trajectories")).await;
-    let state = get(format!("{base}/v1/runs/{run}/state")).await;
-    // The time the filter spent in its steps, from the run's stored metrics.
-    let result: Value = serde_json::from_str(
-        &running
-            .store
-            .get_artifact(&run, fleetslam_server::history::RESULT)
-            .await
-            .unwrap()
-            .expect("an ended run has its result"),
+    (
+        started.elapsed().as_secs_f64(),
+        busy.load(Ordering::Relaxed),
     )
+}
+
+/// One server round: `runs` runs of the same log on one server, posted at the same time.
+async fn server_round(log: &Arc<Log>, particles: usize, batch: usize, runs: usize) -> Vec<Round> {
+    let dir = tempfile::tempdir().unwrap();
+    let running = fleetslam_server::server::start(&ServerConfig {
+        bind: "127.0.0.1:0".into(),
+        data_dir: dir.path().to_path_buf(),
+        ..ServerConfig::default()
+    })
+    .await
     .unwrap();
-    let steps_s = result["metrics"]["step_ms_mean"].as_f64().unwrap()
-        * result["metrics"]["applied"].as_f64().unwrap()
-        / 1e3;
-    running.stop().await.unwrap();
-    Round {
-        wall,
-        steps_s,
-        traj,
-        state,
-        heard,
-        busy: busy.load(Ordering::Relaxed),
+    let base = format!("http://{}", running.addr);
+    let c = reqwest::Client::new();
+    let mut postings = Vec::new();
+    for _ in 0..runs {
+        postings.push(create_run(&c, running.addr, log, particles).await);
     }
+    let started = Instant::now();
+    let posters: Vec<_> = postings
+        .iter()
+        .map(|p| {
+            tokio::spawn(post_run(
+                c.clone(),
+                base.clone(),
+                log.clone(),
+                p.run.clone(),
+                p.tokens.clone(),
+                batch,
+                started,
+            ))
+        })
+        .collect();
+    let mut rounds = Vec::new();
+    for (p, poster) in postings.into_iter().zip(posters) {
+        let (wall, busy) = poster.await.unwrap();
+        let heard = tokio::time::timeout(Duration::from_secs(10), p.listener)
+            .await
+            .expect("the websocket listener heard the run end")
+            .unwrap();
+        let get = |path: String| {
+            let c = c.clone();
+            async move {
+                c.get(path)
+                    .send()
+                    .await
+                    .unwrap()
+                    .json::<Value>()
+                    .await
+                    .unwrap()
+            }
+        };
+        let run = &p.run;
+        let traj = get(format!("{base}/v1/runs/{run}/trajectories")).await;
+        let state = get(format!("{base}/v1/runs/{run}/state")).await;
+        // The time the filter spent in its steps, from the run's stored metrics.
+        let result: Value = serde_json::from_str(
+            &running
+                .store
+                .get_artifact(run, fleetslam_server::history::RESULT)
+                .await
+                .unwrap()
+                .expect("an ended run has its result"),
+        )
+        .unwrap();
+        let steps_s = result["metrics"]["step_ms_mean"].as_f64().unwrap()
+            * result["metrics"]["applied"].as_f64().unwrap()
+            / 1e3;
+        rounds.push(Round {
+            wall,
+            steps_s,
+            traj,
+            state,
+            heard,
+            busy,
+        });
+    }
+    running.stop().await.unwrap();
+    rounds
 }
 
 fn offline_round(log: &Log, particles: usize) -> (f64, RunOutput) {
@@ -280,11 +360,17 @@ fn check_identical(out: &RunOutput, traj: &Value, state: &Value) {
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
-    let usage = "usage: server_overhead MRCLAM_DIR|LOG [PARTICLES] [ROUNDS] [DURATION_S]";
+    let usage =
+        "usage: server_overhead MRCLAM_DIR|LOG [PARTICLES] [ROUNDS] [DURATION_S|all] [RUNS]";
     let path = std::path::Path::new(args.get(1).expect(usage));
     let particles: usize = args.get(2).map_or(1000, |p| p.parse().expect(usage));
     let rounds: usize = args.get(3).map_or(3, |p| p.parse().expect(usage));
-    let duration: Option<f64> = args.get(4).map(|p| p.parse().expect(usage));
+    let duration: Option<f64> = args
+        .get(4)
+        .filter(|d| d.as_str() != "all")
+        .map(|p| p.parse().expect(usage));
+    let runs: usize = args.get(5).map_or(1, |p| p.parse().expect(usage));
+    assert!(runs >= 1, "{usage}");
     let batch = BATCH;
     let mut log = if path.is_dir() {
         let opts = MrclamOptions {
@@ -296,9 +382,11 @@ fn main() {
         Log::read_path(path).unwrap()
     };
     log.sort();
+    let log = Arc::new(log);
     let n = log.records.len();
     println!(
-        "{n} records, {} robots, {particles} particles, seed 1, {batch} records per request, {} cores",
+        "{n} records, {} robots, {particles} particles, seed 1, {batch} records per request, \
+         {runs} run(s) at once, {} cores",
         log.header.robots.len(),
         std::thread::available_parallelism().map_or(1, |n| n.get())
     );
@@ -306,25 +394,52 @@ fn main() {
     let mut ratios = Vec::new();
     for round in 1..=rounds {
         let (offline_s, out) = offline_round(&log, particles);
-        let r = rt.block_on(server_round(&log, particles, batch));
-        assert_eq!(r.state["applied"].as_u64(), Some(n as u64), "{}", r.state);
-        check_identical(&out, &r.traj, &r.state);
-        assert!(
-            r.heard.states > 0,
-            "the websocket listener received no state"
-        );
-        assert_eq!(
-            r.heard.last_applied, n as u64,
-            "the websocket listener did not receive the final state"
-        );
-        let ratio = r.wall / offline_s;
-        ratios.push(ratio);
-        println!(
-            "round {round}: offline {offline_s:.2} s, server {:.2} s (filter steps {:.2} s), \
-             ratio {ratio:.3} (identical; listener: {} states, {} events; {} requests retried \
-             after 503)",
-            r.wall, r.steps_s, r.heard.states, r.heard.events, r.busy
-        );
+        let started = Instant::now();
+        let rs = rt.block_on(server_round(&log, particles, batch, runs));
+        let all_s = started.elapsed().as_secs_f64();
+        for (k, r) in rs.iter().enumerate() {
+            assert_eq!(r.state["applied"].as_u64(), Some(n as u64), "{}", r.state);
+            check_identical(&out, &r.traj, &r.state);
+            assert!(
+                r.heard.states > 0,
+                "the websocket listener received no state"
+            );
+            assert_eq!(
+                r.heard.last_applied, n as u64,
+                "the websocket listener did not receive the final state"
+            );
+            let ratio = r.wall / (offline_s * runs as f64);
+            if runs == 1 {
+                ratios.push(ratio);
+            }
+            println!(
+                "round {round}{}: offline {offline_s:.2} s, server {:.2} s (filter steps {:.2} s), \
+                 ratio {ratio:.3} (identical; listener: {} states, longest gap {:.0} ms, {} \
+                 events; {} requests retried after 503)",
+                if runs > 1 {
+                    format!(" run {}", k + 1)
+                } else {
+                    String::new()
+                },
+                r.wall,
+                r.steps_s,
+                r.heard.states,
+                r.heard.max_gap.as_secs_f64() * 1e3,
+                r.heard.events,
+                r.busy
+            );
+        }
+        if runs > 1 {
+            // All runs posted at once: the server's time for all of them against the offline
+            // time of as many runs one after another.
+            let last = rs.iter().map(|r| r.wall).fold(0.0, f64::max);
+            let ratio = last / (offline_s * runs as f64);
+            ratios.push(ratio);
+            println!(
+                "round {round}: {runs} runs in {last:.2} s (round with set-up {all_s:.2} s) \
+                 against {runs} x offline {offline_s:.2} s: ratio {ratio:.3}"
+            );
+        }
     }
     ratios.sort_by(f64::total_cmp);
     println!(

@@ -54,7 +54,9 @@ use crate::config::{Association, ConfigError, FilterConfig, WORK_ITEMS_PER_THREA
 use crate::log::Record;
 use crate::map::LandmarkMap;
 use crate::motion::Motion;
-use crate::pose::{Pose2, PoseGaussian, weighted_mean_pose, weighted_mean_pose_sc, wrap_angle};
+use crate::pose::{
+    Pose2, PoseGaussian, PositionHeading, weighted_mean_pose, weighted_mean_pose_sc, wrap_angle,
+};
 use crate::resample::{normalize_log_weights_keeping, systematic};
 use crate::rng::{LANE_ADD_ROBOT, LANE_RESAMPLE, stream};
 use crate::sensor::LandmarkKind;
@@ -251,11 +253,12 @@ pub struct FastSlam {
     /// same bits as computing it again); empty before the first step. Estimates read it
     /// instead of taking an `exp` per particle on every record.
     weights: Vec<f64>,
-    /// `headings[r][i]`: `(sin θ, cos θ)` of robot r's heading in particle i, computed in
-    /// parallel by the last step that moved robot r (no other step changes that pose), for
-    /// its mean pose and for its next step's motion; a robot's list is empty (and computed
-    /// when needed) before its first step and after a restore.
-    headings: Vec<Vec<(f64, f64)>>,
+    /// `headings[r][i]`: robot r's position and `(sin θ, cos θ)` of its heading in particle
+    /// i, computed in parallel by the last step that moved robot r (no other step changes
+    /// that pose), for its mean pose (read from contiguous memory, not through every
+    /// particle's list of poses) and for its next step's motion; a robot's list is empty (and
+    /// computed when needed) before its first step and after a restore.
+    headings: Vec<Vec<PositionHeading>>,
 }
 
 /// The association thresholds and clutter densities that follow from a configuration (χ²
@@ -620,7 +623,7 @@ impl FastSlam {
         self.headings.resize(self.robots.len(), Vec::new());
         let headings = &mut self.headings[r];
         let headings_known = headings.len() == n;
-        headings.resize(n, (0.0, 0.0));
+        headings.resize(n, PositionHeading::default());
         let d = self.derived;
         let ctx = StepCtx {
             cfg,
@@ -651,7 +654,7 @@ impl FastSlam {
             .map(|(c, (chunk, headings))| {
                 let stats = process_chunk(&ctx, c * batch, chunk, headings);
                 for (p, h) in chunk.iter().zip(headings) {
-                    *h = p.poses[r].theta.sin_cos();
+                    *h = PositionHeading::of(&p.poses[r]);
                 }
                 stats
             })
@@ -710,30 +713,40 @@ impl FastSlam {
         for h in self.headings.iter_mut().filter(|h| h.len() == n) {
             *h = idx.iter().map(|&i| h[i]).collect();
         }
-        // Each parent's last child takes the parent itself; only the others are copies.
+        // Each parent's last child takes the parent itself; only the others are copies. The
+        // copies are made, and the particles no child took are dropped (their maps' nodes
+        // freed where no other particle shares them), in parallel: the reference counts they
+        // leave do not depend on the order, and the moves in between are serial.
         let mut children = vec![0u32; n];
         for &i in &idx {
             children[i] += 1;
         }
-        let mut old: Vec<Option<Particle>> = std::mem::take(&mut self.particles)
-            .into_iter()
-            .map(Some)
-            .collect();
-        self.particles = idx
-            .into_iter()
-            .map(|i| {
+        let takes: Vec<bool> = idx
+            .iter()
+            .map(|&i| {
                 children[i] -= 1;
-                let parent = if children[i] == 0 {
-                    old[i].take()
-                } else {
-                    old[i].clone()
-                };
+                children[i] == 0
+            })
+            .collect();
+        let old = std::mem::take(&mut self.particles);
+        let copies: Vec<Option<Particle>> = idx
+            .par_iter()
+            .zip(&takes)
+            .map(|(&i, &take)| (!take).then(|| old[i].clone()))
+            .collect();
+        let mut old: Vec<Option<Particle>> = old.into_iter().map(Some).collect();
+        self.particles = copies
+            .into_iter()
+            .zip(idx.iter().zip(&takes))
+            .map(|(copy, (&i, &take))| {
+                let parent = if take { old[i].take() } else { copy };
                 Particle {
                     log_w: uniform,
                     ..parent.expect("a parent is taken by its last child only")
                 }
             })
             .collect();
+        old.into_par_iter().for_each(drop);
         self.ess = n as f64;
         self.stats.resamples += 1;
     }
@@ -751,16 +764,21 @@ impl FastSlam {
 
     /// Weighted mean pose of one robot.
     pub fn mean_pose(&self, robot: usize) -> Pose2 {
-        let particles = self.particles.iter().enumerate();
-        let headings = self.headings.get(robot);
-        if let Some(headings) = headings.filter(|h| h.len() == self.particles.len()) {
-            weighted_mean_pose_sc(
-                particles
-                    .zip(headings)
-                    .map(|((i, p), &sc)| (&p.poses[robot], sc, self.weight(i))),
-            )
-        } else {
-            weighted_mean_pose(particles.map(|(i, p)| (&p.poses[robot], self.weight(i))))
+        let n = self.particles.len();
+        let headings = self.headings.get(robot).filter(|h| h.len() == n);
+        match headings {
+            Some(h) if self.weights.len() == n => {
+                weighted_mean_pose_sc(h.iter().copied().zip(self.weights.iter().copied()))
+            }
+            Some(h) => {
+                weighted_mean_pose_sc(h.iter().enumerate().map(|(i, &h)| (h, self.weight(i))))
+            }
+            None => weighted_mean_pose(
+                self.particles
+                    .iter()
+                    .enumerate()
+                    .map(|(i, p)| (&p.poses[robot], self.weight(i))),
+            ),
         }
     }
 
@@ -1110,7 +1128,10 @@ mod tests {
                 assert_eq!(f.mean_pose(r), direct(&f, r));
                 // A robot's kept headings are its poses' own, whichever robot moved last.
                 let kept = &f.headings[r];
-                let own = f.particles().iter().map(|p| p.poses[r].theta.sin_cos());
+                let own = f
+                    .particles()
+                    .iter()
+                    .map(|p| PositionHeading::of(&p.poses[r]));
                 // (robot "s", 1, moves first at step 3)
                 if r == 0 || k >= 3 {
                     assert!(kept.iter().copied().eq(own), "robot {r} after step {k}");

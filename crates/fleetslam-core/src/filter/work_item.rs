@@ -10,7 +10,7 @@ use super::{Action, FilterStats, Particle, StepCtx};
 use crate::config::{Association, FastSlamVersion};
 use crate::map::Landmark;
 use crate::motion::covariance_in_world_sc;
-use crate::pose::wrap_angle;
+use crate::pose::{PositionHeading, wrap_angle};
 use crate::rng::stream;
 use crate::sensor::{LandmarkKind, MeasurementModel, Point3Model, RangeBearingModel};
 use crate::stats::log_add_exp;
@@ -42,13 +42,14 @@ impl Decisions {
     }
 }
 
-/// One work item: `chunk` holds particles `base..base + chunk.len()`, `headings` their
-/// `(sin θ, cos θ)` of the robot's heading before the step when `ctx.headings_known`.
+/// One work item: `chunk` holds particles `base..base + chunk.len()`, `headings` the
+/// robot's position and `(sin θ, cos θ)` of its heading before the step when
+/// `ctx.headings_known`.
 pub(super) fn process_chunk(
     ctx: &StepCtx<'_>,
     base: usize,
     chunk: &mut [Particle],
-    headings: &[(f64, f64)],
+    headings: &[PositionHeading],
 ) -> FilterStats {
     let cfg = ctx.cfg;
     let mut stats = FilterStats::default();
@@ -86,6 +87,27 @@ pub(super) fn process_chunk(
     stats
 }
 
+/// How many particles ahead phase 1 reads a particle's pose, pose covariance and odometry
+/// scales of the robot, and the landmark of the record's first observation with a known
+/// slot: each particle keeps them in lists and trie nodes of its own, scattered over the
+/// heap, which the loop would otherwise wait for one particle at a time.
+const PREFETCH_AHEAD: usize = 4;
+
+/// Reads what particle `p` keeps of robot `r`, and its landmark in `slot`, ahead of their
+/// use, so that the processor fetches them while it works on the particles before (no
+/// effect on results).
+#[inline(always)]
+fn prefetch_robot(p: &Particle, r: usize, slot: Option<usize>) {
+    if let (Some(a), Some(b), Some(c)) =
+        (p.poses.get(r), p.pose_covs.get(r), p.odometry_scales.get(r))
+    {
+        std::hint::black_box((a.x, b[0], c[0]));
+    }
+    if let Some(l) = slot.and_then(|s| p.map.get(s)) {
+        std::hint::black_box(l.gaussian.mean[0]);
+    }
+}
+
 /// Phase 1: each particle's new pose of the robot (deferred Gaussian, 2.0's proposal, or
 /// 1.0's motion sample), the record's association, and in 2.0 the weights from the
 /// proposal. Generic over the run's measurement model, which the caller picks.
@@ -93,7 +115,7 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
     ctx: &StepCtx<'_>,
     base: usize,
     chunk: &mut [Particle],
-    headings: &[(f64, f64)],
+    headings: &[PositionHeading],
     defer: bool,
     stats: &mut FilterStats,
 ) -> Decisions {
@@ -108,7 +130,12 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
     let v2 = cfg.version == FastSlamVersion::V2;
     let qs = cfg.sighting_noise.q2();
     let calibrate = cfg.odometry_calibration.enabled();
-    for (i, p) in chunk.iter_mut().enumerate() {
+    let first_slot = ctx.obs.iter().find_map(|o| o.slot);
+    for i in 0..n {
+        if let Some(ahead) = chunk.get(i + PREFETCH_AHEAD) {
+            prefetch_robot(ahead, r, first_slot);
+        }
+        let p = &mut chunk[i];
         let prev = p.poses[r];
         let prev_cov = p.pose_covs[r];
         // The particle's stream of this step (32 bytes, a few dozen instructions to seed).
@@ -122,7 +149,7 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
             ctx.inc
         };
         let sc = if ctx.headings_known {
-            headings[i]
+            headings[i].sc()
         } else {
             prev.theta.sin_cos()
         };

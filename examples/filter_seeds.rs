@@ -38,6 +38,11 @@
 //! (100) and prints their final snapshots' size, write time and read-and-restore time with
 //! the maps in a node pool and, as before it, each particle's map whole.
 
+/// The `fleetslam` binary's allocator (crates/fleetslam-cli/src/main.rs), so that the figures
+/// are the binary's.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 use fleetslam_core::config::{DeferSampling, FastSlamVersion};
 use fleetslam_core::filter::FastSlam;
 use fleetslam_core::log::SensorRange;

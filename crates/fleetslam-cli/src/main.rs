@@ -18,7 +18,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 
 /// mimalloc: the filter's steps clone and free many small lists and map nodes, on several
-/// threads; it made them 5-15 % faster than the system allocator (README, session 18).
+/// threads; it made the speed runs 4-17 % faster than the system allocator (medians, README,
+/// session 18).
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 

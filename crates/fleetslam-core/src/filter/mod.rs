@@ -338,9 +338,6 @@ struct StepCtx<'a> {
     /// Whether FastSLAM 2.0 defers the pose sampling of records without landmark
     /// observations (`defer_pose_sampling` for the filter's current number of robots).
     defer: bool,
-    /// Whether the headings handed to a work item hold `(sin θ, cos θ)` of the robot's pose
-    /// before the step (else each particle computes them).
-    headings_known: bool,
 }
 
 impl FastSlam {
@@ -622,6 +619,8 @@ impl FastSlam {
         let n = self.particles.len();
         self.headings.resize(self.robots.len(), Vec::new());
         let headings = &mut self.headings[r];
+        // Kept since the robot last moved, or computed first (its first step, or after a
+        // restore).
         let headings_known = headings.len() == n;
         headings.resize(n, PositionHeading::default());
         let d = self.derived;
@@ -642,7 +641,6 @@ impl FastSlam {
             clutter: d.clutter,
             sighting_clutter: d.sighting_clutter,
             defer: cfg.defer_pose_sampling.defers(self.robots.len()),
-            headings_known,
         };
 
         let batch = work_item_len(n, rayon::current_num_threads());
@@ -652,10 +650,16 @@ impl FastSlam {
             .zip(headings.par_chunks_mut(batch))
             .enumerate()
             .map(|(c, (chunk, headings))| {
-                let stats = process_chunk(&ctx, c * batch, chunk, headings);
-                for (p, h) in chunk.iter().zip(headings) {
-                    *h = PositionHeading::of(&p.poses[r]);
+                let keep = |chunk: &[Particle], headings: &mut [PositionHeading]| {
+                    for (p, h) in chunk.iter().zip(headings) {
+                        *h = PositionHeading::of(&p.poses[r]);
+                    }
+                };
+                if !headings_known {
+                    keep(chunk, headings);
                 }
+                let stats = process_chunk(&ctx, c * batch, chunk, headings);
+                keep(chunk, headings);
                 stats
             })
             .reduce(FilterStats::default, FilterStats::add);
@@ -767,9 +771,6 @@ impl FastSlam {
         let n = self.particles.len();
         let headings = self.headings.get(robot).filter(|h| h.len() == n);
         match headings {
-            Some(h) if self.weights.len() == n => {
-                weighted_mean_pose_sc(h.iter().copied().zip(self.weights.iter().copied()))
-            }
             Some(h) => {
                 weighted_mean_pose_sc(h.iter().enumerate().map(|(i, &h)| (h, self.weight(i))))
             }
@@ -1609,7 +1610,6 @@ mod tests {
             clutter: -10.0,
             sighting_clutter: -10.0,
             defer: true,
-            headings_known: false,
         };
         let q = RangeBearingModel::noise(&cfg.sensor_noise);
         let part = &f.particles()[0];

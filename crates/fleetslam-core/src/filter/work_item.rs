@@ -43,8 +43,7 @@ impl Decisions {
 }
 
 /// One work item: `chunk` holds particles `base..base + chunk.len()`, `headings` the
-/// robot's position and `(sin θ, cos θ)` of its heading before the step when
-/// `ctx.headings_known`.
+/// robot's position and `(sin θ, cos θ)` of its heading in each of them before the step.
 pub(super) fn process_chunk(
     ctx: &StepCtx<'_>,
     base: usize,
@@ -148,11 +147,7 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
         } else {
             ctx.inc
         };
-        let sc = if ctx.headings_known {
-            headings[i].sc()
-        } else {
-            prev.theta.sin_cos()
-        };
+        let sc = headings[i].sc();
         let mean0 = prev.compose_sc(&inc, sc);
         let mut pc0 = covariance_in_world_sc(sc, &ctx.var);
         if !point {

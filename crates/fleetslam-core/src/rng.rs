@@ -31,7 +31,7 @@ pub const LANE_CALIBRATION: u64 = 1 << 61;
 
 #[inline]
 fn splitmix64(mut z: u64) -> u64 {
-    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = z.wrapping_add(SPLITMIX_GAMMA);
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
     z ^ (z >> 31)
@@ -46,11 +46,48 @@ fn key(seed: u64, step: u64, lane: u64) -> [u64; 3] {
     [a, b, c]
 }
 
+/// SplitMix64's increment, the golden ratio in 64-bit fixed point.
+const SPLITMIX_GAMMA: u64 = 0x9E37_79B9_7F4A_7C15;
+
 /// The generator of `lane` (usually a particle slot) at `step` of a run seeded with `seed`:
 /// Xoshiro256++ seeded through SplitMix64 (`seed_from_u64`) from the key's last word.
 #[inline]
 pub fn stream(seed: u64, step: u64, lane: u64) -> Stream {
-    Stream::seed_from_u64(key(seed, step, lane)[2])
+    StepStreams::new(seed, step).lane(lane)
+}
+
+/// The streams of one step: the part of the key that (seed, step) fixes, hashed once, so
+/// that each lane's stream costs one hash of its own and the four SplitMix64 words of its
+/// state, which do not depend on each other. [`StepStreams::lane`] gives the generator
+/// [`stream`] gives, bit for bit.
+#[derive(Debug, Clone, Copy)]
+pub struct StepStreams {
+    /// The key's second word, `splitmix64(splitmix64(seed) ^ step)`.
+    step_key: u64,
+}
+
+impl StepStreams {
+    #[inline]
+    pub fn new(seed: u64, step: u64) -> Self {
+        Self {
+            step_key: splitmix64(splitmix64(seed) ^ step),
+        }
+    }
+
+    /// The generator of `lane` at this step.
+    #[inline]
+    pub fn lane(&self, lane: u64) -> Stream {
+        let c = splitmix64(self.step_key ^ lane);
+        // `seed_from_u64(c)`: SplitMix64 from state `c` fills the 256-bit seed with its first
+        // four outputs, the i-th being the mix of `c + (i + 1) · γ` (`splitmix64` adds γ
+        // first), in little-endian order.
+        let mut bytes = [0u8; 32];
+        for (i, b) in bytes.chunks_exact_mut(8).enumerate() {
+            let w = splitmix64(c.wrapping_add((i as u64).wrapping_mul(SPLITMIX_GAMMA)));
+            b.copy_from_slice(&w.to_le_bytes());
+        }
+        Stream::from_seed(bytes)
+    }
 }
 
 /// The ChaCha8 generator of (seed, step, lane), as every stream was before session 17; the
@@ -70,6 +107,22 @@ pub fn chacha_stream(seed: u64, step: u64, lane: u64) -> ChaCha8Rng {
 mod tests {
     use super::*;
     use rand::Rng;
+
+    /// A step's streams are the ones `seed_from_u64` of the key's last word gives (the
+    /// streams of sessions 17-18), state for state.
+    #[test]
+    fn step_streams_are_seed_from_u64_of_the_key() {
+        for (seed, step) in [(0, 0), (1, 2), (u64::MAX, 7), (42, u64::MAX)] {
+            let streams = StepStreams::new(seed, step);
+            for lane in [0, 1, 2, 999, LANE_CALIBRATION + 3, LANE_RESAMPLE] {
+                let mut old = Stream::seed_from_u64(key(seed, step, lane)[2]);
+                let mut new = streams.lane(lane);
+                for _ in 0..8 {
+                    assert_eq!(old.random::<u64>(), new.random::<u64>());
+                }
+            }
+        }
+    }
 
     #[test]
     fn streams_are_reproducible_and_distinct() {

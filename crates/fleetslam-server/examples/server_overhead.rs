@@ -18,7 +18,11 @@
 //! until the run's end is answered: every record stored, applied and the run's result
 //! stored) and their ratio, the longest wait between two states the listener received, and
 //! checks that the server's trajectories and landmarks equal the offline run's bit for bit;
-//! then the median ratio.
+//! then the median ratio. It also prints the CPU time this process used on each side, and
+//! the server's by thread name: the filter's workers (`rayon-N`, rayon's shared pool,
+//! named here), the async runtime's (`tokio-rt-worker`: the clients, the listener, the
+//! handlers, and the coordinator's blocking thread, where each step's serial parts run)
+//! and SQLite's.
 //!
 //! With `RUNS` above 1 (default 1), that many runs of the log are posted to one server at
 //! the same time, each by its own clients and with its own listener: each run's wall time
@@ -239,7 +243,14 @@ async fn post_run(
 }
 
 /// One server round: `runs` runs of the same log on one server, posted at the same time.
-async fn server_round(log: &Arc<Log>, particles: usize, batch: usize, runs: usize) -> Vec<Round> {
+/// Also returns each thread's CPU time ([`thread_cpu_s`]) when the last run ended, before
+/// the server stops.
+async fn server_round(
+    log: &Arc<Log>,
+    particles: usize,
+    batch: usize,
+    runs: usize,
+) -> (Vec<Round>, std::collections::BTreeMap<u64, (String, f64)>) {
     let dir = tempfile::tempdir().unwrap();
     let running = fleetslam_server::server::start(&ServerConfig {
         bind: "127.0.0.1:0".into(),
@@ -313,8 +324,70 @@ async fn server_round(log: &Arc<Log>, particles: usize, batch: usize, runs: usiz
             busy,
         });
     }
+    let threads = thread_cpu_s();
     running.stop().await.unwrap();
-    rounds
+    (rounds, threads)
+}
+
+/// A `stat` line of `/proc` (a process's or a thread's): its command name and the CPU time
+/// it used, user and system [s] (fields 14 and 15, in the kernel's clock ticks of 1/100 s).
+fn parse_stat(stat: &str) -> Option<(String, f64)> {
+    // The name is in parentheses and may hold spaces and parentheses itself.
+    let open = stat.find('(')?;
+    let (head, rest) = stat.rsplit_once(')')?;
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    // Field 3 is the first after the name.
+    let ticks = |field: usize| f.get(field - 3)?.parse::<f64>().ok();
+    Some((
+        head.get(open + 1..)?.to_string(),
+        (ticks(14)? + ticks(15)?) / 100.0,
+    ))
+}
+
+/// CPU time this process has used so far, over all its threads [s]; `NaN` where there is
+/// no `/proc`.
+fn process_cpu_s() -> f64 {
+    std::fs::read_to_string("/proc/self/stat")
+        .ok()
+        .and_then(|s| parse_stat(&s))
+        .map_or(f64::NAN, |(_, cpu)| cpu)
+}
+
+/// CPU time [s] of each live thread of this process by thread id, with its name
+/// (`/proc/self/task/*/stat`); empty where there is no `/proc`.
+fn thread_cpu_s() -> std::collections::BTreeMap<u64, (String, f64)> {
+    let mut out = std::collections::BTreeMap::new();
+    let Ok(dir) = std::fs::read_dir("/proc/self/task") else {
+        return out;
+    };
+    for e in dir.flatten() {
+        let Ok(tid) = e.file_name().to_string_lossy().parse::<u64>() else {
+            continue;
+        };
+        let stat = std::fs::read_to_string(e.path().join("stat")).unwrap_or_default();
+        if let Some(named) = parse_stat(&stat) {
+            out.insert(tid, named);
+        }
+    }
+    out
+}
+
+/// The CPU time threads used between two [`thread_cpu_s`] readings, summed by thread name
+/// (a thread born after `before` counts whole; one that ended before `after` is missing).
+fn cpu_by_name(
+    before: &std::collections::BTreeMap<u64, (String, f64)>,
+    after: &std::collections::BTreeMap<u64, (String, f64)>,
+) -> String {
+    let mut by: std::collections::BTreeMap<&str, f64> = std::collections::BTreeMap::new();
+    for (tid, (name, cpu)) in after {
+        let was = before.get(tid).map_or(0.0, |b| b.1);
+        *by.entry(name.as_str()).or_default() += cpu - was;
+    }
+    by.iter()
+        .filter(|(_, s)| **s > 0.0)
+        .map(|(n, s)| format!("{n} {s:.2} s"))
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 fn offline_round(log: &Log, particles: usize) -> (f64, RunOutput) {
@@ -390,13 +463,31 @@ fn main() {
         log.header.robots.len(),
         std::thread::available_parallelism().map_or(1, |n| n.get())
     );
+    // Named, so that the CPU time by thread tells the filter's workers apart.
+    rayon::ThreadPoolBuilder::new()
+        .thread_name(|i| format!("rayon-{i}"))
+        .build_global()
+        .unwrap();
     let rt = tokio::runtime::Runtime::new().unwrap();
     let mut ratios = Vec::new();
     for round in 1..=rounds {
+        let cpu0 = process_cpu_s();
         let (offline_s, out) = offline_round(&log, particles);
+        let cpu1 = process_cpu_s();
+        let threads1 = thread_cpu_s();
         let started = Instant::now();
-        let rs = rt.block_on(server_round(&log, particles, batch, runs));
+        let (rs, threads2) = rt.block_on(server_round(&log, particles, batch, runs));
         let all_s = started.elapsed().as_secs_f64();
+        let cpu2 = process_cpu_s();
+        // CPU time against wall time: how much of the cores each side kept busy (the
+        // server's includes its set-up, its clients and its listener, all in this process).
+        println!(
+            "round {round}: CPU time offline {:.2} s in {offline_s:.2} s, server {:.2} s in \
+             {all_s:.2} s (with set-up); server by thread: {}",
+            cpu1 - cpu0,
+            cpu2 - cpu1,
+            cpu_by_name(&threads1, &threads2)
+        );
         for (k, r) in rs.iter().enumerate() {
             assert_eq!(r.state["applied"].as_u64(), Some(n as u64), "{}", r.state);
             check_identical(&out, &r.traj, &r.state);

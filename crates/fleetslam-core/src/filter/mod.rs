@@ -58,7 +58,7 @@ use crate::pose::{
     Pose2, PoseGaussian, PositionHeading, weighted_mean_pose, weighted_mean_pose_sc, wrap_angle,
 };
 use crate::resample::{normalize_log_weights_keeping, systematic};
-use crate::rng::{LANE_ADD_ROBOT, LANE_RESAMPLE, stream};
+use crate::rng::{LANE_ADD_ROBOT, LANE_RESAMPLE, StepStreams, stream};
 use crate::sensor::LandmarkKind;
 use crate::updater::{LandmarkGaussian, LandmarkUpdater};
 use gauss::{cholesky_psd, normal3, sym3};
@@ -325,7 +325,8 @@ struct StepCtx<'a> {
     std: [f64; 3],
     obs: &'a [Obs],
     sightings: &'a [(usize, [f64; 2])],
-    step: u64,
+    /// The particles' random streams of this step (lane: the particle's slot).
+    streams: StepStreams,
     known_len: usize,
     /// The association gate and new-landmark threshold (squared Mahalanobis distances) for
     /// the run's measurement dimension.
@@ -634,7 +635,7 @@ impl FastSlam {
             std: var.map(f64::sqrt),
             obs: &obs,
             sightings: &sightings,
-            step: self.step,
+            streams: StepStreams::new(cfg.seed, self.step),
             known_len,
             gate: d.gate,
             new_landmark: d.new_landmark,
@@ -1603,7 +1604,7 @@ mod tests {
             std: [0.0; 3],
             obs: &obs,
             sightings: &[],
-            step: 0,
+            streams: StepStreams::new(0, 0),
             known_len: 1,
             gate: 9.0,
             new_landmark: 16.0,

@@ -11,7 +11,6 @@ use crate::config::{Association, FastSlamVersion};
 use crate::map::Landmark;
 use crate::motion::covariance_in_world_sc;
 use crate::pose::{PositionHeading, wrap_angle};
-use crate::rng::stream;
 use crate::sensor::{LandmarkKind, MeasurementModel, Point3Model, RangeBearingModel};
 use crate::stats::log_add_exp;
 use crate::updater::{UpdateInput, UpdateNeeds, UpdateOutput};
@@ -138,7 +137,7 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
         let prev = p.poses[r];
         let prev_cov = p.pose_covs[r];
         // The particle's stream of this step (32 bytes, a few dozen instructions to seed).
-        let rng = &mut stream(cfg.seed, ctx.step, (base + i) as u64);
+        let rng = &mut ctx.streams.lane((base + i) as u64);
         let acts = &mut actions[i * nobs..(i + 1) * nobs];
         let bll = &mut best_ll[i * nobs..(i + 1) * nobs];
         let point = prev_cov.iter().all(|v| *v == 0.0);
@@ -155,7 +154,12 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
             pc0 += f * sym3(&prev_cov) * f.transpose();
         }
         if defer {
-            let (pose, pc, dw) = sighting_update(ctx, &qs, p, mean0, pc0);
+            // Most such records carry no sighting either: the prediction stands.
+            let (pose, pc, dw) = if ctx.sightings.is_empty() {
+                (mean0, pc0, 0.0)
+            } else {
+                sighting_update(ctx, &qs, p, mean0, pc0)
+            };
             p.poses[r] = pose;
             p.pose_covs[r] = upper3(&pc);
             p.log_w += dw;

@@ -317,8 +317,9 @@ struct StepCtx<'a> {
     updater: &'a dyn LandmarkUpdater,
     robot: usize,
     inc: Pose2,
-    /// The motion's duration (s), for the random walk of the odometry scales.
-    dt: f64,
+    /// The standard deviations of the odometry scales' random walk over the motion's
+    /// duration ([`proposal::scale_walk`]), the same for every particle.
+    scale_walk: Option<[f64; 2]>,
     /// Variances of the (longitudinal, lateral, heading) increment noise.
     var: [f64; 3],
     /// Their square roots.
@@ -630,7 +631,7 @@ impl FastSlam {
             updater: self.updater.as_ref(),
             robot: r,
             inc,
-            dt,
+            scale_walk: proposal::scale_walk(&cfg.odometry_calibration, dt),
             var,
             std: var.map(f64::sqrt),
             obs: &obs,
@@ -1599,7 +1600,7 @@ mod tests {
             updater: f.updater().as_ref(),
             robot: 0,
             inc: Pose2::default(),
-            dt: 0.0,
+            scale_walk: None,
             var: [0.0; 3],
             std: [0.0; 3],
             obs: &obs,

@@ -224,12 +224,22 @@ pub(super) fn draw_scales(cal: &OdometryCalibration, seed: u64, step: u64, i: us
 /// their random walk over the motion's duration (which draws from `rng` only when
 /// calibration walks).
 pub(super) fn scaled_increment(ctx: &StepCtx<'_>, p: &mut Particle, rng: &mut Stream) -> Pose2 {
-    let cal = &ctx.cfg.odometry_calibration;
     let s = &mut p.odometry_scales[ctx.robot];
-    if cal.walks() && ctx.dt > 0.0 {
-        let sq = ctx.dt.sqrt();
-        s[0] += cal.distance_walk_per_sqrt_s * sq * rng.sample::<f64, _>(StandardNormal);
-        s[1] += cal.rotation_walk_per_sqrt_s * sq * rng.sample::<f64, _>(StandardNormal);
+    if let Some([distance, rotation]) = ctx.scale_walk {
+        s[0] += distance * rng.sample::<f64, _>(StandardNormal);
+        s[1] += rotation * rng.sample::<f64, _>(StandardNormal);
     }
     scale_increment(&ctx.inc, *s)
+}
+
+/// The standard deviations (distance, rotation) of the odometry scales' random walk over a
+/// motion of `dt` seconds, `None` where it does not move them (no walk, or no time).
+pub(super) fn scale_walk(cal: &OdometryCalibration, dt: f64) -> Option<[f64; 2]> {
+    (cal.walks() && dt > 0.0).then(|| {
+        let sq = dt.sqrt();
+        [
+            cal.distance_walk_per_sqrt_s * sq,
+            cal.rotation_walk_per_sqrt_s * sq,
+        ]
+    })
 }

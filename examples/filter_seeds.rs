@@ -460,7 +460,7 @@ fn main() {
 struct WholeMaps<'a> {
     config: &'a fleetslam_core::config::FilterConfig,
     robots: &'a [fleetslam_core::filter::RobotState],
-    particles: &'a [fleetslam_core::filter::Particle],
+    particles: &'a [fleetslam_core::filter::ParticleState],
     known_slots: &'a std::collections::BTreeMap<u32, usize>,
     step: u64,
     ess: f64,
@@ -504,7 +504,8 @@ fn snapshot_sizes(name: &str, slam: &FastSlam) {
     let read_whole = time(&mut || drop(read(&whole)));
     let restored = read(&pooled);
     assert!(
-        restored.particles() == slam.particles(),
+        restored.particles() == slam.particles()
+            && restored.robot_particles() == slam.robot_particles(),
         "restored particles differ"
     );
     let value: serde_json::Value = serde_json::from_slice(&pooled).expect("JSON");

@@ -186,6 +186,7 @@ fn snapshots_keep_the_maps_sharing_and_old_ones_still_restore() {
     }
     assert_same_state(&resumed.snapshot(), &whole.snapshot());
     assert!(resumed_old.particles() == whole.particles());
+    assert!(resumed_old.robot_particles() == whole.robot_particles());
     assert_eq!(
         format!("{:?}", resumed_old.estimate()),
         format!("{:?}", whole.estimate())

@@ -240,8 +240,10 @@ proptest! {
             let sum: f64 = slam.particles().iter().map(|p| p.log_w.exp()).sum();
             prop_assert!((sum - 1.0).abs() < 1e-9, "weights sum to {}", sum);
             prop_assert!(slam.ess().is_finite() && slam.ess() >= 1.0 - 1e-9);
+            for robot in slam.robot_particles() {
+                prop_assert!(robot.poses.iter().all(|q| q.is_finite()));
+            }
             for p in slam.particles() {
-                prop_assert!(p.poses.iter().all(|q| q.is_finite()));
                 for (_, l) in p.map.iter() {
                     let c = l.gaussian.cov2();
                     prop_assert!(l.gaussian.is_finite());

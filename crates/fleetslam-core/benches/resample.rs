@@ -35,7 +35,8 @@ use std::time::{Duration, Instant};
 const PARTICLES: usize = 1_000;
 const LANDMARKS: [usize; 4] = [10, 100, 1_000, 10_000];
 
-/// The body of `FastSlam::resample` (plus the normalisation that precedes it in `step`).
+/// The body of `FastSlam::resample` for the particles (maps and weights; the robots' lists by
+/// robot are gathered apart), plus the normalisation that precedes it in `step`.
 fn resample(old: Vec<Particle>, mut log_w: Vec<f64>) -> Vec<Particle> {
     normalize_log_weights(&mut log_w);
     let mut rng = stream(0, 1, LANE_RESAMPLE);

@@ -124,7 +124,7 @@ fn start_time(log: &Log, r: &fleetslam_core::log::RobotStart) -> f64 {
 fn pose_of(slam: &FastSlam, which: TrajectoryEstimate, r: usize) -> fleetslam_core::Pose2 {
     match which {
         TrajectoryEstimate::Mean => slam.mean_pose(r),
-        TrajectoryEstimate::Best => slam.particles()[slam.best_index()].poses[r],
+        TrajectoryEstimate::Best => slam.robot_particles()[r].poses[slam.best_index()],
     }
 }
 

@@ -2,7 +2,7 @@
 //! with known ids. Landmark `id` sits at a fixed place (bearings spread by the golden angle,
 //! ranges 2-20 m), so a map of `m` landmarks holds ids `0..m` in slots `0..m`.
 
-use fleetslam_core::filter::Particle;
+use fleetslam_core::filter::ParticleState;
 use fleetslam_core::log::{LandmarkObservation, Record};
 use fleetslam_core::motion::Motion;
 use fleetslam_core::pose::wrap_angle;
@@ -80,7 +80,7 @@ pub fn shared_filter(particles: usize, m: usize) -> FastSlam {
     let mut s = one.snapshot();
     let ancestor = s.particles.pop().expect("one particle");
     s.particles = vec![
-        Particle {
+        ParticleState {
             log_w: -(particles as f64).ln(),
             ..ancestor
         };

@@ -1,7 +1,8 @@
 //! The multi-robot, shared-map FastSLAM filter.
 //!
-//! Each [`Particle`] holds the pose of every robot of the run and one [`LandmarkMap`]. A
-//! record of robot `r` is applied to every particle:
+//! Each particle holds the pose of every robot of the run and one [`LandmarkMap`] (the
+//! filter stores a particle's map and weight as a [`Particle`], and its robots' poses by
+//! robot, as [`RobotParticles`]). A record of robot `r` is applied to every particle:
 //!
 //! 1. **Association.** By id, or (unknown ids) per particle for the whole record at once,
 //!    with mutual exclusion: the (observation, landmark) pairs within the Mahalanobis gate
@@ -67,10 +68,10 @@ use proposal::draw_scales;
 use rand::Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-pub use snapshot::Snapshot;
+pub use snapshot::{ParticleState, Snapshot};
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
-use work_item::process_chunk;
+use work_item::{Chunk, process_chunk};
 
 /// Errors of the filter; each says what was wrong with the input.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -99,26 +100,69 @@ pub enum FilterError {
     Snapshot(String),
 }
 
-/// One hypothesis: every robot's pose and one shared landmark map.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+/// One hypothesis's shared landmark map and weight. What it holds of each robot (pose, pose
+/// Gaussian, odometry scales) is stored by robot, in [`RobotParticles`]: a step of one robot
+/// then reads and writes that robot's lists from one end to the other, instead of a few
+/// bytes from each particle's lists scattered over the heap.
+#[derive(Debug, Clone, PartialEq)]
 pub struct Particle {
-    /// Pose of each robot, in the order robots were added.
-    pub poses: Vec<Pose2>,
-    /// Per robot, the covariance of its pose around `poses` (upper triangle: xx, xy, xθ,
-    /// yy, yθ, θθ): zero once sampled. With FastSLAM 2.0 and `defer_pose_sampling`, a
-    /// record without landmark observations moves this Gaussian (linearised) instead of
-    /// sampling a pose, and the next record that observes a landmark samples from the
-    /// proposal built on it. Empty in snapshots written before it existed (read as zero).
-    #[serde(default)]
-    pub pose_covs: Vec<[f64; 6]>,
-    /// Per robot, the scales (distance, rotation) this particle applies to the robot's
-    /// motion increments ([`crate::config::OdometryCalibration`]); `[1, 1]` when not
-    /// estimated. Empty in snapshots written before it existed (read as `[1, 1]`).
-    #[serde(default)]
-    pub odometry_scales: Vec<[f64; 2]>,
     pub map: LandmarkMap,
     /// Normalised log-weight.
     pub log_w: f64,
+}
+
+/// What the particles hold of one robot: entry `i` of each list is particle `i`'s.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct RobotParticles {
+    /// The robot's pose.
+    pub poses: Vec<Pose2>,
+    /// The covariance of the pose around `poses` (upper triangle: xx, xy, xθ, yy, yθ, θθ):
+    /// zero once sampled. With FastSLAM 2.0 and `defer_pose_sampling`, a record without
+    /// landmark observations moves this Gaussian (linearised) instead of sampling a pose,
+    /// and the next record that observes a landmark samples from the proposal built on it.
+    pub pose_covs: Vec<[f64; 6]>,
+    /// The scales (distance, rotation) the particle applies to the robot's motion
+    /// increments ([`crate::config::OdometryCalibration`]); `[1, 1]` when not estimated.
+    pub odometry_scales: Vec<[f64; 2]>,
+}
+
+impl RobotParticles {
+    /// Particle `i`'s entries, as a snapshot writes them.
+    fn at(&self, i: usize) -> (Pose2, [f64; 6], [f64; 2]) {
+        (self.poses[i], self.pose_covs[i], self.odometry_scales[i])
+    }
+
+    /// The lists in the particles' new order after a resample: entry `k` is the old
+    /// entry `idx[k]`.
+    fn gather(&self, idx: &[usize]) -> Self {
+        Self {
+            poses: idx.iter().map(|&i| self.poses[i]).collect(),
+            pose_covs: idx.iter().map(|&i| self.pose_covs[i]).collect(),
+            odometry_scales: idx.iter().map(|&i| self.odometry_scales[i]).collect(),
+        }
+    }
+}
+
+/// The robots' lists other than the stepping robot's, whose list the work items hold
+/// mutably in pieces: sightings read another robot's pose Gaussian in each particle.
+#[derive(Clone, Copy)]
+struct OtherRobots<'a> {
+    before: &'a [RobotParticles],
+    after: &'a [RobotParticles],
+    robot: usize,
+}
+
+impl<'a> OtherRobots<'a> {
+    /// Robot `other`'s pose and pose covariance in particle `i`; `None` for the stepping
+    /// robot itself (a record's sighting of its own robot is refused before a step).
+    fn get(&self, other: usize, i: usize) -> Option<(&'a Pose2, &'a [f64; 6])> {
+        let list = match other.cmp(&self.robot) {
+            std::cmp::Ordering::Less => self.before.get(other)?,
+            std::cmp::Ordering::Equal => return None,
+            std::cmp::Ordering::Greater => self.after.get(other - self.robot - 1)?,
+        };
+        Some((list.poses.get(i)?, list.pose_covs.get(i)?))
+    }
 }
 
 /// A robot of the run.
@@ -243,6 +287,8 @@ pub struct FastSlam {
     robots: Vec<RobotState>,
     robot_index: HashMap<String, usize>,
     particles: Vec<Particle>,
+    /// `by_robot[r]`: what the particles hold of robot r.
+    by_robot: Vec<RobotParticles>,
     known_slots: BTreeMap<u32, usize>,
     step: u64,
     ess: f64,
@@ -255,9 +301,8 @@ pub struct FastSlam {
     weights: Vec<f64>,
     /// `headings[r][i]`: robot r's position and `(sin θ, cos θ)` of its heading in particle
     /// i, computed in parallel by the last step that moved robot r (no other step changes
-    /// that pose), for its mean pose (read from contiguous memory, not through every
-    /// particle's list of poses) and for its next step's motion; a robot's list is empty (and
-    /// computed when needed) before its first step and after a restore.
+    /// that pose), for its mean pose and for its next step's motion; a robot's list is empty
+    /// (and computed when needed) before its first step and after a restore.
     headings: Vec<Vec<PositionHeading>>,
 }
 
@@ -315,7 +360,6 @@ struct Obs {
 struct StepCtx<'a> {
     cfg: &'a FilterConfig,
     updater: &'a dyn LandmarkUpdater,
-    robot: usize,
     inc: Pose2,
     /// The standard deviations of the odometry scales' random walk over the motion's
     /// duration ([`proposal::scale_walk`]), the same for every particle.
@@ -326,6 +370,8 @@ struct StepCtx<'a> {
     std: [f64; 3],
     obs: &'a [Obs],
     sightings: &'a [(usize, [f64; 2])],
+    /// The other robots' poses in the particles, for the sightings.
+    others: OtherRobots<'a>,
     /// The particles' random streams of this step (lane: the particle's slot).
     streams: StepStreams,
     known_len: usize,
@@ -367,9 +413,6 @@ impl FastSlam {
         let n = config.particles;
         let particles = (0..n)
             .map(|_| Particle {
-                poses: Vec::new(),
-                pose_covs: Vec::new(),
-                odometry_scales: Vec::new(),
                 map: new_map(config.association),
                 log_w: -(n as f64).ln(),
             })
@@ -381,6 +424,7 @@ impl FastSlam {
             robots: Vec::new(),
             robot_index: HashMap::new(),
             particles,
+            by_robot: Vec::new(),
             known_slots: BTreeMap::new(),
             step: 0,
             ess: n as f64,
@@ -408,6 +452,11 @@ impl FastSlam {
 
     pub fn particles(&self) -> &[Particle] {
         &self.particles
+    }
+
+    /// What the particles hold of each robot, in the order robots were added.
+    pub fn robot_particles(&self) -> &[RobotParticles] {
+        &self.by_robot
     }
 
     pub fn stats(&self) -> &FilterStats {
@@ -444,26 +493,19 @@ impl FastSlam {
             })?)
         };
         let (seed, step) = (self.config.seed, self.step);
-        let calibration = self.config.odometry_calibration;
         let mean = start.mean;
-        self.particles
-            .par_iter_mut()
-            .enumerate()
-            .for_each(|(i, p)| {
-                let pose = match &chol {
-                    None => mean,
-                    Some(l) => {
-                        let mut rng = stream(seed, step, LANE_ADD_ROBOT + i as u64);
-                        let e = l * normal3(&mut rng);
-                        Pose2::new(mean.x + e[0], mean.y + e[1], wrap_angle(mean.theta + e[2]))
-                    }
-                };
-                p.poses.push(pose);
-                p.pose_covs.push([0.0; 6]);
-                p.odometry_scales
-                    .push(draw_scales(&calibration, seed, step, i));
-            });
-        Ok(self.finish_add_robot(id, t0))
+        let poses = (0..self.particles.len())
+            .into_par_iter()
+            .map(|i| match &chol {
+                None => mean,
+                Some(l) => {
+                    let mut rng = stream(seed, step, LANE_ADD_ROBOT + i as u64);
+                    let e = l * normal3(&mut rng);
+                    Pose2::new(mean.x + e[0], mean.y + e[1], wrap_angle(mean.theta + e[2]))
+                }
+            })
+            .collect();
+        Ok(self.finish_add_robot(id, t0, poses))
     }
 
     /// Adds a robot whose pose is known as a weighted sample set (a localization posterior):
@@ -501,19 +543,14 @@ impl FastSlam {
         }
         cum.iter_mut().for_each(|c| *c /= total);
         let (seed, step) = (self.config.seed, self.step);
-        let calibration = self.config.odometry_calibration;
-        self.particles
-            .par_iter_mut()
-            .enumerate()
-            .for_each(|(i, p)| {
+        let poses = (0..self.particles.len())
+            .into_par_iter()
+            .map(|i| {
                 let u: f64 = stream(seed, step, LANE_ADD_ROBOT + i as u64).random();
-                let k = cum.partition_point(|&c| c < u).min(samples.len() - 1);
-                p.poses.push(samples[k]);
-                p.pose_covs.push([0.0; 6]);
-                p.odometry_scales
-                    .push(draw_scales(&calibration, seed, step, i));
-            });
-        Ok(self.finish_add_robot(id, t0))
+                samples[cum.partition_point(|&c| c < u).min(samples.len() - 1)]
+            })
+            .collect();
+        Ok(self.finish_add_robot(id, t0, poses))
     }
 
     fn check_new_robot(&self, id: &str, t0: f64) -> Result<(), FilterError> {
@@ -533,7 +570,20 @@ impl FastSlam {
         Ok(())
     }
 
-    fn finish_add_robot(&mut self, id: &str, t0: f64) -> usize {
+    /// Registers a robot whose poses in the particles are `poses` (sampled, no pose
+    /// covariance), each particle drawing its odometry scales of the robot.
+    fn finish_add_robot(&mut self, id: &str, t0: f64, poses: Vec<Pose2>) -> usize {
+        let (seed, step) = (self.config.seed, self.step);
+        let calibration = self.config.odometry_calibration;
+        let n = poses.len();
+        self.by_robot.push(RobotParticles {
+            poses,
+            pose_covs: vec![[0.0; 6]; n],
+            odometry_scales: (0..n)
+                .into_par_iter()
+                .map(|i| draw_scales(&calibration, seed, step, i))
+                .collect(),
+        });
         let idx = self.robots.len();
         self.robots.push(RobotState {
             id: id.to_string(),
@@ -621,6 +671,10 @@ impl FastSlam {
         let n = self.particles.len();
         self.headings.resize(self.robots.len(), Vec::new());
         let headings = &mut self.headings[r];
+        let (before, rest) = self.by_robot.split_at_mut(r);
+        let (mine, after) = rest
+            .split_first_mut()
+            .expect("every robot of the run has its particles' lists");
         // Kept since the robot last moved, or computed first (its first step, or after a
         // restore).
         let headings_known = headings.len() == n;
@@ -629,13 +683,17 @@ impl FastSlam {
         let ctx = StepCtx {
             cfg,
             updater: self.updater.as_ref(),
-            robot: r,
             inc,
             scale_walk: proposal::scale_walk(&cfg.odometry_calibration, dt),
             var,
             std: var.map(f64::sqrt),
             obs: &obs,
             sightings: &sightings,
+            others: OtherRobots {
+                before,
+                after,
+                robot: r,
+            },
             streams: StepStreams::new(cfg.seed, self.step),
             known_len,
             gate: d.gate,
@@ -646,24 +704,37 @@ impl FastSlam {
         };
 
         let batch = work_item_len(n, rayon::current_num_threads());
-        let step_stats = self
-            .particles
-            .par_chunks_mut(batch)
-            .zip(headings.par_chunks_mut(batch))
+        let step_stats = (
+            self.particles.par_chunks_mut(batch),
+            mine.poses.par_chunks_mut(batch),
+            mine.pose_covs.par_chunks_mut(batch),
+            mine.odometry_scales.par_chunks_mut(batch),
+            headings.par_chunks_mut(batch),
+        )
+            .into_par_iter()
             .enumerate()
-            .map(|(c, (chunk, headings))| {
-                let keep = |chunk: &[Particle], headings: &mut [PositionHeading]| {
-                    for (p, h) in chunk.iter().zip(headings) {
-                        *h = PositionHeading::of(&p.poses[r]);
+            .map(
+                |(c, (particles, poses, pose_covs, odometry_scales, headings))| {
+                    let keep = |poses: &[Pose2], headings: &mut [PositionHeading]| {
+                        for (p, h) in poses.iter().zip(headings) {
+                            *h = PositionHeading::of(p);
+                        }
+                    };
+                    if !headings_known {
+                        keep(poses, headings);
                     }
-                };
-                if !headings_known {
-                    keep(chunk, headings);
-                }
-                let stats = process_chunk(&ctx, c * batch, chunk, headings);
-                keep(chunk, headings);
-                stats
-            })
+                    let mut chunk = Chunk {
+                        base: c * batch,
+                        particles,
+                        poses,
+                        pose_covs,
+                        odometry_scales,
+                    };
+                    let stats = process_chunk(&ctx, &mut chunk, headings);
+                    keep(chunk.poses, headings);
+                    stats
+                },
+            )
             .reduce(FilterStats::default, FilterStats::add);
 
         for (id, s) in new_ids {
@@ -718,6 +789,9 @@ impl FastSlam {
         self.weights.resize(n, uniform.exp());
         for h in self.headings.iter_mut().filter(|h| h.len() == n) {
             *h = idx.iter().map(|&i| h[i]).collect();
+        }
+        for list in &mut self.by_robot {
+            *list = list.gather(&idx);
         }
         // Each parent's last child takes the parent itself; only the others are copies. The
         // copies are made, and the particles no child took are dropped (their maps' nodes
@@ -777,10 +851,11 @@ impl FastSlam {
                 weighted_mean_pose_sc(h.iter().enumerate().map(|(i, &h)| (h, self.weight(i))))
             }
             None => weighted_mean_pose(
-                self.particles
+                self.by_robot[robot]
+                    .poses
                     .iter()
                     .enumerate()
-                    .map(|(i, p)| (&p.poses[robot], self.weight(i))),
+                    .map(|(i, p)| (p, self.weight(i))),
             ),
         }
     }
@@ -800,11 +875,12 @@ impl FastSlam {
     pub fn particle_sample(&self, robot: usize, max: usize) -> Vec<(Pose2, f64)> {
         let n = self.particles.len();
         let stride = n.div_ceil(max.max(1)).max(1);
-        self.particles
+        self.by_robot[robot]
+            .poses
             .iter()
             .enumerate()
             .step_by(stride)
-            .map(|(i, p)| (p.poses[robot], self.weight(i)))
+            .map(|(i, p)| (*p, self.weight(i)))
             .collect()
     }
 
@@ -819,16 +895,17 @@ impl FastSlam {
                 let mean = self.mean_pose(r);
                 let mut cov = [[0.0; 3]; 3];
                 let (mut odometry_scale, mut sw) = ([0.0; 2], 0.0);
-                for (i, p) in self.particles.iter().enumerate() {
+                let list = &self.by_robot[r];
+                for i in 0..self.particles.len() {
                     let w = self.weight(i);
                     sw += w;
-                    for (m, s) in odometry_scale.iter_mut().zip(p.odometry_scales[r]) {
+                    for (m, s) in odometry_scale.iter_mut().zip(list.odometry_scales[i]) {
                         *m += w * s;
                     }
-                    let q = &p.poses[r];
+                    let q = &list.poses[i];
                     let d = [q.x - mean.x, q.y - mean.y, wrap_angle(q.theta - mean.theta)];
                     // The spread of the particles plus each one's own pose covariance.
-                    let pc = sym3(&p.pose_covs[r]);
+                    let pc = sym3(&list.pose_covs[i]);
                     for i in 0..3 {
                         for j in 0..3 {
                             cov[i][j] += w * (d[i] * d[j] + pc[(i, j)]);
@@ -839,7 +916,7 @@ impl FastSlam {
                 odometry_scale = odometry_scale.map(|m| m / sw);
                 RobotEstimate {
                     id: st.id.clone(),
-                    best: self.particles[best].poses[r],
+                    best: list.poses[best],
                     mean,
                     cov,
                     last_t: st.last_t,
@@ -910,7 +987,32 @@ impl FastSlam {
         Snapshot {
             config: self.config.clone(),
             robots: self.robots.clone(),
-            particles: self.particles.clone(),
+            particles: self
+                .particles
+                .iter()
+                .enumerate()
+                .map(|(i, p)| {
+                    let n = self.by_robot.len();
+                    let (mut poses, mut pose_covs, mut odometry_scales) = (
+                        Vec::with_capacity(n),
+                        Vec::with_capacity(n),
+                        Vec::with_capacity(n),
+                    );
+                    for list in &self.by_robot {
+                        let (pose, cov, scales) = list.at(i);
+                        poses.push(pose);
+                        pose_covs.push(cov);
+                        odometry_scales.push(scales);
+                    }
+                    ParticleState {
+                        poses,
+                        pose_covs,
+                        odometry_scales,
+                        map: p.map.clone(),
+                        log_w: p.log_w,
+                    }
+                })
+                .collect(),
             known_slots: self.known_slots.clone(),
             step: self.step,
             ess: self.ess,
@@ -964,13 +1066,37 @@ impl FastSlam {
             .enumerate()
             .map(|(i, r)| (r.id.clone(), i))
             .collect();
+        let n = s.particles.len();
+        let mut by_robot: Vec<RobotParticles> = (0..s.robots.len())
+            .map(|_| RobotParticles {
+                poses: Vec::with_capacity(n),
+                pose_covs: Vec::with_capacity(n),
+                odometry_scales: Vec::with_capacity(n),
+            })
+            .collect();
+        let particles = s
+            .particles
+            .into_iter()
+            .map(|p| {
+                for (r, list) in by_robot.iter_mut().enumerate() {
+                    list.poses.push(p.poses[r]);
+                    list.pose_covs.push(p.pose_covs[r]);
+                    list.odometry_scales.push(p.odometry_scales[r]);
+                }
+                Particle {
+                    map: p.map,
+                    log_w: p.log_w,
+                }
+            })
+            .collect();
         Ok(Self {
             derived: Derived::of(&s.config),
             config: s.config,
             updater,
             robots: s.robots,
             robot_index,
-            particles: s.particles,
+            particles,
+            by_robot,
             known_slots: s.known_slots,
             step: s.step,
             ess: s.ess,
@@ -1106,7 +1232,12 @@ mod tests {
         )
         .unwrap();
         let direct = |f: &FastSlam, r: usize| {
-            weighted_mean_pose(f.particles().iter().map(|p| (&p.poses[r], p.log_w.exp())))
+            weighted_mean_pose(
+                f.particles()
+                    .iter()
+                    .zip(&f.robot_particles()[r].poses)
+                    .map(|(p, pose)| (pose, p.log_w.exp())),
+            )
         };
         let mut resampled = [false, false];
         for k in 0..8 {
@@ -1131,10 +1262,7 @@ mod tests {
                 assert_eq!(f.mean_pose(r), direct(&f, r));
                 // A robot's kept headings are its poses' own, whichever robot moved last.
                 let kept = &f.headings[r];
-                let own = f
-                    .particles()
-                    .iter()
-                    .map(|p| PositionHeading::of(&p.poses[r]));
+                let own = f.robot_particles()[r].poses.iter().map(PositionHeading::of);
                 // (robot "s", 1, moves first at step 3)
                 if r == 0 || k >= 3 {
                     assert!(kept.iter().copied().eq(own), "robot {r} after step {k}");
@@ -1207,11 +1335,11 @@ mod tests {
             f.step(&moving("r", k as f64, &[], &[])).unwrap();
             dead_reckoned = dead_reckoned.compose(&inc);
             // Every particle holds the dead-reckoned mean and one growing covariance.
-            let p0 = &f.particles()[0];
-            assert!(f.particles().iter().all(|p| p.poses[0] == p0.poses[0]));
-            let d = p0.poses[0];
+            let r0 = &f.robot_particles()[0];
+            assert!(r0.poses.iter().all(|p| *p == r0.poses[0]));
+            let d = r0.poses[0];
             assert!((d.x - dead_reckoned.x).abs() < 1e-12 && (d.y - dead_reckoned.y).abs() < 1e-12);
-            let c = p0.pose_covs[0];
+            let c = r0.pose_covs[0];
             assert!(c[0] + c[3] + c[5] > trace, "{c:?}");
             trace = c[0] + c[3] + c[5];
             // The estimate's covariance is that Gaussian's.
@@ -1222,14 +1350,15 @@ mod tests {
         // The covariance holds what five sampled steps would spread: the heading variance
         // grows linearly in the steps.
         let one = covariance_in_world(&Pose2::default(), &cfg.motion_noise.variances(&inc, 1.0));
-        assert!((f.particles()[0].pose_covs[0][5] - 5.0 * one[(2, 2)]).abs() < 1e-12);
+        assert!((f.robot_particles()[0].pose_covs[0][5] - 5.0 * one[(2, 2)]).abs() < 1e-12);
         // A landmark observation samples from the proposal built on it.
         f.step(&moving("r", 6.0, &[[2.0, 0.3]], &[])).unwrap();
-        assert!(f.particles().iter().all(|p| p.pose_covs[0] == [0.0; 6]));
-        let spread = f
-            .particles()
+        let r0 = &f.robot_particles()[0];
+        assert!(r0.pose_covs.iter().all(|c| *c == [0.0; 6]));
+        let spread = r0
+            .poses
             .iter()
-            .map(|p| (p.poses[0].x - f.particles()[0].poses[0].x).abs())
+            .map(|p| (p.x - r0.poses[0].x).abs())
             .fold(0.0, f64::max);
         assert!(spread > 1e-3, "{spread}");
         // Without deferral every record samples, and so does `auto` with one robot; with
@@ -1254,9 +1383,9 @@ mod tests {
                 .unwrap();
             }
             g.step(&moving("r0", 1.0, &[], &[])).unwrap();
-            let p0 = g.particles()[0].poses[0];
-            let same = g.particles().iter().all(|p| p.poses[0] == p0);
-            let zero = g.particles().iter().all(|p| p.pose_covs[0] == [0.0; 6]);
+            let r0 = &g.robot_particles()[0];
+            let same = r0.poses.iter().all(|p| *p == r0.poses[0]);
+            let zero = r0.pose_covs.iter().all(|c| *c == [0.0; 6]);
             assert_eq!(
                 (same, !zero),
                 (deferred, deferred),
@@ -1282,7 +1411,8 @@ mod tests {
         let back: Snapshot = serde_json::from_value(json.clone()).unwrap();
         let g = FastSlam::from_snapshot(back, f.updater().clone()).unwrap();
         assert_eq!(g.particles(), f.particles());
-        assert!(g.particles()[0].pose_covs[0][5] > 0.0);
+        assert_eq!(g.robot_particles(), f.robot_particles());
+        assert!(g.robot_particles()[0].pose_covs[0][5] > 0.0);
         // A snapshot written before pose covariances existed: every pose is a sample.
         let mut old = json;
         for p in old["particles"].as_array_mut().unwrap() {
@@ -1290,7 +1420,8 @@ mod tests {
         }
         let old: Snapshot = serde_json::from_value(old).unwrap();
         let h = FastSlam::from_snapshot(old, f.updater().clone()).unwrap();
-        assert!(h.particles().iter().all(|p| p.pose_covs == vec![[0.0; 6]]));
+        let covs = &h.robot_particles()[0].pose_covs;
+        assert!(covs.len() == 8 && covs.iter().all(|c| *c == [0.0; 6]));
         // A mismatched one is refused.
         let mut bad = f.snapshot();
         bad.particles[0].pose_covs.push([0.0; 6]);
@@ -1314,9 +1445,10 @@ mod tests {
         // Off: every scale is exactly 1 and the estimate reports 1.
         let f = calibrated(OdometryCalibration::default());
         assert!(
-            f.particles()
+            f.robot_particles()[0]
+                .odometry_scales
                 .iter()
-                .all(|p| p.odometry_scales == vec![[1.0; 2]])
+                .all(|s| *s == [1.0; 2])
         );
         assert_eq!(f.estimate().robots[0].odometry_scale, [1.0; 2]);
         // A prior only: drawn once per particle, spread by about its standard deviation,
@@ -1327,7 +1459,7 @@ mod tests {
             ..Default::default()
         };
         let mut f = calibrated(cal);
-        let drawn: Vec<[f64; 2]> = f.particles().iter().map(|p| p.odometry_scales[0]).collect();
+        let drawn = f.robot_particles()[0].odometry_scales.clone();
         let spread = |k: usize| {
             let m = drawn.iter().map(|s| s[k]).sum::<f64>() / drawn.len() as f64;
             (drawn.iter().map(|s| (s[k] - m).powi(2)).sum::<f64>() / drawn.len() as f64).sqrt()
@@ -1335,7 +1467,7 @@ mod tests {
         assert!((0.025..0.1).contains(&spread(0)), "{}", spread(0));
         assert!((0.01..0.04).contains(&spread(1)), "{}", spread(1));
         f.step(&moving("r", 1.0, &[], &[])).unwrap();
-        let after: Vec<[f64; 2]> = f.particles().iter().map(|p| p.odometry_scales[0]).collect();
+        let after = f.robot_particles()[0].odometry_scales.clone();
         let sorted = |mut v: Vec<[f64; 2]>| {
             v.sort_by(|a, b| a.partial_cmp(b).unwrap());
             v
@@ -1363,11 +1495,10 @@ mod tests {
             .unwrap();
         f.step(&moving("r", 1.0, &[], &[])).unwrap();
         let inc = Motion::Velocity(vec![[0.5, 0.1, 1.0]]).increment(&f.config().ackermann);
-        for p in f.particles() {
-            let [sd, sr] = p.odometry_scales[0];
+        let r0 = &f.robot_particles()[0];
+        for (&[sd, sr], &got) in r0.odometry_scales.iter().zip(&r0.poses) {
             assert!(sd != 1.0 && sr != 1.0);
             let want = Pose2::new(sd * inc.x, sd * inc.y, sr * inc.theta);
-            let got = p.poses[0];
             assert!((got.x - want.x).abs() < 1e-12 && (got.theta - want.theta).abs() < 1e-12);
         }
     }
@@ -1389,6 +1520,7 @@ mod tests {
         )
         .unwrap();
         assert_eq!(g.particles(), f.particles());
+        assert_eq!(g.robot_particles(), f.robot_particles());
         let mut old = json;
         for p in old["particles"].as_array_mut().unwrap() {
             p.as_object_mut().unwrap().remove("odometry_scales");
@@ -1396,15 +1528,47 @@ mod tests {
         let h = FastSlam::from_snapshot(serde_json::from_value(old).unwrap(), f.updater().clone())
             .unwrap();
         assert!(
-            h.particles()
+            h.robot_particles()[0]
+                .odometry_scales
                 .iter()
-                .all(|p| p.odometry_scales == vec![[1.0; 2]])
+                .all(|s| *s == [1.0; 2])
         );
         let mut bad = f.snapshot();
         bad.particles[0].odometry_scales.clear();
         bad.particles[0].odometry_scales.push([1.0; 2]);
         bad.particles[0].odometry_scales.push([1.0; 2]);
         assert!(FastSlam::from_snapshot(bad, f.updater().clone()).is_err());
+    }
+
+    /// A sighting is weighed against the seen robot's pose in the same particle, in every
+    /// work item (the seen robot's entries lie in its own list, found by the particle's slot
+    /// in the filter), whether the seeing robot defers its pose (2.0) or samples it (1.0).
+    #[test]
+    fn a_sighting_weighs_each_particle_by_its_own_pose_of_the_seen_robot() {
+        let n = 41;
+        for version in [FastSlamVersion::V1, FastSlamVersion::V2] {
+            let mut f = FastSlam::new(config(version, Association::Known, n)).unwrap();
+            f.add_robot("a", &PoseGaussian::exact(Pose2::default()), 0.0)
+                .unwrap();
+            f.add_robot("b", &PoseGaussian::exact(Pose2::default()), 0.0)
+                .unwrap();
+            // Particle k holds robot a at 2 + 0.02 (k - 20) m ahead of b.
+            let mut snap = f.snapshot();
+            for (k, p) in snap.particles.iter_mut().enumerate() {
+                p.poses[0].x = 2.0 + 0.02 * (k as f64 - 20.0);
+            }
+            let mut f = FastSlam::from_snapshot(snap, f.updater().clone()).unwrap();
+            let mut rec = moving("b", 1.0, &[], &[("a", [2.0, 0.0])]);
+            rec.motion = None;
+            f.step(&rec).unwrap();
+            let w: Vec<f64> = f.particles().iter().map(|p| p.log_w).collect();
+            for k in 0..n {
+                let (d, inner) = (k.abs_diff(20), if k < 20 { k + 1 } else { k - 1 });
+                if d > 0 {
+                    assert!(w[k] < w[inner], "{version:?}: particle {k} {w:?}");
+                }
+            }
+        }
     }
 
     #[test]
@@ -1426,7 +1590,7 @@ mod tests {
             }
             // The truth is 0.2 m to the left of where dead reckoning puts b at t = 6.
             let inc = Motion::Velocity(vec![[0.5, 0.1, 1.0]]).increment(&f.config().ackermann);
-            let b = f.particles()[0].poses[1].compose(&inc);
+            let b = f.robot_particles()[1].poses[0].compose(&inc);
             let truth = Pose2::new(b.x, b.y + 0.2, b.theta);
             let (z, _, _) = range_bearing_predict(&truth, 0.0, 0.0).unwrap();
             let sightings: Vec<(&str, [f64; 2])> = if sight {
@@ -1435,8 +1599,8 @@ mod tests {
                 vec![]
             };
             f.step(&moving("b", 6.0, &[], &sightings)).unwrap();
-            let p = &f.particles()[0];
-            (p.poses[1], p.pose_covs[1])
+            let b = &f.robot_particles()[1];
+            (b.poses[0], b.pose_covs[0])
         };
         let (blind, blind_cov) = run(false);
         let (seen, seen_cov) = run(true);
@@ -1598,13 +1762,17 @@ mod tests {
         let ctx = StepCtx {
             cfg: &cfg,
             updater: f.updater().as_ref(),
-            robot: 0,
             inc: Pose2::default(),
             scale_walk: None,
             var: [0.0; 3],
             std: [0.0; 3],
             obs: &obs,
             sightings: &[],
+            others: OtherRobots {
+                before: &[],
+                after: &[],
+                robot: 0,
+            },
             streams: StepStreams::new(0, 0),
             known_len: 1,
             gate: 9.0,
@@ -1621,7 +1789,8 @@ mod tests {
             propose::<2, RangeBearingModel>(
                 &ctx,
                 &q,
-                part,
+                &part.map,
+                0,
                 &Pose2::default(),
                 cov,
                 &mut acts,

@@ -3,8 +3,9 @@
 //! Gaussian, FastSLAM 1.0's motion sample, and the odometry scales' draws and walk.
 
 use super::gauss::{cholesky_psd, normal3, sym3};
-use super::{Action, Particle, StepCtx};
+use super::{Action, StepCtx};
 use crate::config::OdometryCalibration;
+use crate::map::LandmarkMap;
 use crate::motion::scale_increment;
 use crate::pose::{Pose2, wrap_angle};
 use crate::rng::{LANE_CALIBRATION, Stream, stream};
@@ -37,7 +38,7 @@ pub(super) fn sighting_marginal(
     ll.is_finite().then_some((ll, hx, s_inv, nu))
 }
 
-/// FastSLAM 2.0's proposal for one particle: the motion prediction `N(mean0, pc)` refined by
+/// FastSLAM 2.0's proposal for the particle of index `particle`, whose map is `map`: the motion prediction `N(mean0, pc)` refined by
 /// each observation the association matched, and with `sightings_in_proposal` each sighting
 /// of another robot (a Kalman update of the pose per observation), then sampled. Returns the sampled pose and the particle's log-weight increment, the sum of
 /// each observation's mixture likelihood (its proposal marginal for the matched ones), or
@@ -48,7 +49,8 @@ pub(super) fn sighting_marginal(
 pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
     ctx: &StepCtx<'_>,
     q: &SMatrix<f64, D, D>,
-    part: &Particle,
+    map: &LandmarkMap,
+    particle: usize,
     mean0: &Pose2,
     pc0: &Matrix3<f64>,
     acts: &mut [Action],
@@ -60,7 +62,7 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
     let mut pc = *pc0;
     let mut dw = 0.0;
     for (j, o) in ctx.obs.iter().enumerate() {
-        let slot = match acts[j] {
+        let landmark = match acts[j] {
             Action::Update(s) => s,
             Action::New(Some(_)) | Action::Outlier => {
                 dw += ctx.clutter;
@@ -72,7 +74,7 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
             }
         };
         let pose = Pose2::new(mu[0], mu[1], mu[2]);
-        let Some(lm) = part.map.get(slot) else {
+        let Some(lm) = map.get(landmark) else {
             acts[j] = Action::Outlier;
             dw += ctx.clutter;
             continue;
@@ -123,7 +125,8 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
     };
     for &(other, z) in sightings {
         let pose = Pose2::new(mu[0], mu[1], mu[2]);
-        let Some((ll, next, next_pc)) = sighting_step(part, other, &z, &qs, &pose, &pc) else {
+        let Some((ll, next, next_pc)) = sighting_step(ctx, particle, other, &z, &qs, &pose, &pc)
+        else {
             dw += ctx.sighting_clutter;
             continue;
         };
@@ -146,20 +149,21 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
     ))
 }
 
-/// The deferred path of FastSLAM 2.0 for a record without landmark observations: the
-/// robot's predicted pose Gaussian `N(mean0, pc0)` updated by each of its sightings of other
-/// robots (an EKF update, marginal over the other robot's pose Gaussian), and the
-/// log-weight increment, each sighting's mixture likelihood.
+/// The deferred path of FastSLAM 2.0 for a record without landmark observations, in
+/// the particle of index `particle`: the robot's predicted pose Gaussian `N(mean0, pc0)` updated by each of
+/// its sightings of other robots (an EKF update, marginal over the other robot's pose
+/// Gaussian), and the log-weight increment, each sighting's mixture likelihood.
 pub(super) fn sighting_update(
     ctx: &StepCtx<'_>,
     qs: &Matrix2<f64>,
-    p: &Particle,
+    particle: usize,
     mean0: Pose2,
     pc0: Matrix3<f64>,
 ) -> (Pose2, Matrix3<f64>, f64) {
     let (mut mu, mut pc, mut dw) = (mean0, pc0, 0.0);
     for &(other, z) in ctx.sightings {
-        let Some((ll, next, next_pc)) = sighting_step(p, other, &z, qs, &mu, &pc) else {
+        let Some((ll, next, next_pc)) = sighting_step(ctx, particle, other, &z, qs, &mu, &pc)
+        else {
             dw += ctx.sighting_clutter;
             continue;
         };
@@ -172,20 +176,22 @@ pub(super) fn sighting_update(
     (mu, pc, dw)
 }
 
-/// One sighting `z` of robot `other` (in particle `p`) as an EKF update of the pose Gaussian
-/// `N(mu, pc)` of the robot that saw it: the sighting's log-likelihood, marginal over both
-/// Gaussians ([`sighting_marginal`]), and the updated mean and (symmetrised) covariance.
-/// `None` for a degenerate geometry.
+/// One sighting `z` of robot `other` (its pose Gaussian in the particle of index `particle`) as an EKF update
+/// of the pose Gaussian `N(mu, pc)` of the robot that saw it: the sighting's log-likelihood,
+/// marginal over both Gaussians ([`sighting_marginal`]), and the updated mean and
+/// (symmetrised) covariance. `None` for a degenerate geometry.
 pub(super) fn sighting_step(
-    p: &Particle,
+    ctx: &StepCtx<'_>,
+    particle: usize,
     other: usize,
     z: &[f64; 2],
     qs: &Matrix2<f64>,
     mu: &Pose2,
     pc: &Matrix3<f64>,
 ) -> Option<(f64, Pose2, Matrix3<f64>)> {
-    let pt = sym3(&p.pose_covs[other]);
-    let (ll, hx, s_inv, nu) = sighting_marginal(mu, pc, &p.poses[other], &pt, qs, z)?;
+    let (target, target_cov) = ctx.others.get(other, particle)?;
+    let pt = sym3(target_cov);
+    let (ll, hx, s_inv, nu) = sighting_marginal(mu, pc, target, &pt, qs, z)?;
     let k = pc * hx.transpose() * s_inv;
     let d = k * nu;
     let next = Pose2::new(mu.x + d[0], mu.y + d[1], wrap_angle(mu.theta + d[2]));
@@ -220,11 +226,10 @@ pub(super) fn draw_scales(cal: &OdometryCalibration, seed: u64, step: u64, i: us
     [draw(cal.distance_std), draw(cal.rotation_std)]
 }
 
-/// The record's increment as this particle's odometry scales of the robot see it, after
+/// The record's increment as a particle's odometry scales `s` of the robot see it, after
 /// their random walk over the motion's duration (which draws from `rng` only when
 /// calibration walks).
-pub(super) fn scaled_increment(ctx: &StepCtx<'_>, p: &mut Particle, rng: &mut Stream) -> Pose2 {
-    let s = &mut p.odometry_scales[ctx.robot];
+pub(super) fn scaled_increment(ctx: &StepCtx<'_>, s: &mut [f64; 2], rng: &mut Stream) -> Pose2 {
     if let Some([distance, rotation]) = ctx.scale_walk {
         s[0] += distance * rng.sample::<f64, _>(StandardNormal);
         s[1] += rotation * rng.sample::<f64, _>(StandardNormal);

@@ -3,7 +3,7 @@
 //! and a restored filter shares what the running one shared. Snapshots written before the
 //! pool (each particle's map as its list of slots, under `map`) still read.
 
-use super::{FilterStats, Particle, RobotState};
+use super::{FilterStats, RobotState};
 use crate::config::FilterConfig;
 use crate::map::{LandmarkMap, MapPool, PoolError, PoolReader, PoolWriter, PooledMap};
 use crate::pose::Pose2;
@@ -19,11 +19,32 @@ use std::collections::BTreeMap;
 pub struct Snapshot {
     pub config: FilterConfig,
     pub robots: Vec<RobotState>,
-    pub particles: Vec<Particle>,
+    pub particles: Vec<ParticleState>,
     pub known_slots: BTreeMap<u32, usize>,
     pub step: u64,
     pub ess: f64,
     pub stats: FilterStats,
+}
+
+/// One particle as a snapshot holds it: every robot's pose, pose covariance and odometry
+/// scales (the filter keeps these by robot, [`super::RobotParticles`]), its map and its
+/// weight. Serialised whole (with `map`), it is the format of snapshots before the pool.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ParticleState {
+    /// Pose of each robot, in the order robots were added.
+    pub poses: Vec<Pose2>,
+    /// Per robot, the covariance of its pose around `poses` (upper triangle), zero once
+    /// sampled ([`super::RobotParticles::pose_covs`]). Empty in snapshots written before it
+    /// existed (read as zero).
+    #[serde(default)]
+    pub pose_covs: Vec<[f64; 6]>,
+    /// Per robot, the odometry scales ([`super::RobotParticles::odometry_scales`]). Empty in
+    /// snapshots written before they existed (read as `[1, 1]`).
+    #[serde(default)]
+    pub odometry_scales: Vec<[f64; 2]>,
+    pub map: LandmarkMap,
+    /// Normalised log-weight.
+    pub log_w: f64,
 }
 
 #[derive(Serialize)]
@@ -95,10 +116,10 @@ struct SnapshotIn {
 #[derive(Deserialize)]
 struct ParticleIn {
     poses: Vec<Pose2>,
-    /// Empty in snapshots written before it existed (see [`Particle::pose_covs`]).
+    /// Empty in snapshots written before it existed (see [`ParticleState::pose_covs`]).
     #[serde(default)]
     pose_covs: Vec<[f64; 6]>,
-    /// Empty in snapshots written before it existed (see [`Particle::odometry_scales`]).
+    /// Empty in snapshots written before it existed (see [`ParticleState::odometry_scales`]).
     #[serde(default)]
     odometry_scales: Vec<[f64; 2]>,
     /// The map's entry in the snapshot's pool.
@@ -146,7 +167,7 @@ impl<'de> Deserialize<'de> for Snapshot {
                         )));
                     }
                 };
-                Ok(Particle {
+                Ok(ParticleState {
                     poses: p.poses,
                     pose_covs: p.pose_covs,
                     odometry_scales: p.odometry_scales,

@@ -10,7 +10,7 @@ use super::{Action, FilterStats, Particle, StepCtx};
 use crate::config::{Association, FastSlamVersion};
 use crate::map::Landmark;
 use crate::motion::covariance_in_world_sc;
-use crate::pose::{PositionHeading, wrap_angle};
+use crate::pose::{Pose2, PositionHeading, wrap_angle};
 use crate::sensor::{LandmarkKind, MeasurementModel, Point3Model, RangeBearingModel};
 use crate::stats::log_add_exp;
 use crate::updater::{UpdateInput, UpdateNeeds, UpdateOutput};
@@ -41,18 +41,27 @@ impl Decisions {
     }
 }
 
-/// One work item: `chunk` holds particles `base..base + chunk.len()`, `headings` the
-/// robot's position and `(sin θ, cos θ)` of its heading in each of them before the step.
+/// The particles of one work item, `base..base + particles.len()`, with the stepping
+/// robot's entries of them (its pose, pose covariance and odometry scales in each).
+pub(super) struct Chunk<'a> {
+    pub(super) base: usize,
+    pub(super) particles: &'a mut [Particle],
+    pub(super) poses: &'a mut [Pose2],
+    pub(super) pose_covs: &'a mut [[f64; 6]],
+    pub(super) odometry_scales: &'a mut [[f64; 2]],
+}
+
+/// One work item: `chunk`'s particles, `headings` the robot's position and `(sin θ, cos θ)`
+/// of its heading in each of them before the step.
 pub(super) fn process_chunk(
     ctx: &StepCtx<'_>,
-    base: usize,
-    chunk: &mut [Particle],
+    chunk: &mut Chunk<'_>,
     headings: &[PositionHeading],
 ) -> FilterStats {
     let cfg = ctx.cfg;
     let mut stats = FilterStats::default();
     if ctx.known_len > 0 {
-        for p in chunk.iter_mut() {
+        for p in chunk.particles.iter_mut() {
             p.map.ensure_slots(ctx.known_len);
         }
     }
@@ -61,10 +70,10 @@ pub(super) fn process_chunk(
     let defer = cfg.version == FastSlamVersion::V2 && ctx.defer && ctx.obs.is_empty();
     let decided = match cfg.landmark_kind {
         LandmarkKind::RangeBearing2d => {
-            move_poses::<2, RangeBearingModel>(ctx, base, chunk, headings, defer, &mut stats)
+            move_poses::<2, RangeBearingModel>(ctx, chunk, headings, defer, &mut stats)
         }
         LandmarkKind::Point3d => {
-            move_poses::<3, Point3Model>(ctx, base, chunk, headings, defer, &mut stats)
+            move_poses::<3, Point3Model>(ctx, chunk, headings, defer, &mut stats)
         }
     };
     let observed = update_landmarks(ctx, chunk, &decided, &mut stats);
@@ -77,7 +86,7 @@ pub(super) fn process_chunk(
             lower_existence_in_view(ctx, chunk, observed, &mut stats);
         }
     }
-    for p in chunk.iter_mut() {
+    for p in chunk.particles.iter_mut() {
         if !p.log_w.is_finite() {
             p.log_w = f64::MIN;
         }
@@ -85,23 +94,17 @@ pub(super) fn process_chunk(
     stats
 }
 
-/// How many particles ahead phase 1 reads a particle's pose, pose covariance and odometry
-/// scales of the robot, and the landmark of the record's first observation with a known
-/// slot: each particle keeps them in lists and trie nodes of its own, scattered over the
-/// heap, which the loop would otherwise wait for one particle at a time.
+/// How many particles ahead phase 1 reads a particle's landmark of the record's first
+/// observation with a known slot: each particle keeps its landmarks in trie nodes of its
+/// own, scattered over the heap, which the loop would otherwise wait for one particle at a
+/// time. (The robot's entries lie in lists by robot, which the processor streams.)
 const PREFETCH_AHEAD: usize = 4;
 
-/// Reads what particle `p` keeps of robot `r`, and its landmark in `slot`, ahead of their
-/// use, so that the processor fetches them while it works on the particles before (no
-/// effect on results).
+/// Reads particle `p`'s landmark in `slot` ahead of its use, so that the processor fetches
+/// it while it works on the particles before (no effect on results).
 #[inline(always)]
-fn prefetch_robot(p: &Particle, r: usize, slot: Option<usize>) {
-    if let (Some(a), Some(b), Some(c)) =
-        (p.poses.get(r), p.pose_covs.get(r), p.odometry_scales.get(r))
-    {
-        std::hint::black_box((a.x, b[0], c[0]));
-    }
-    if let Some(l) = slot.and_then(|s| p.map.get(s)) {
+fn prefetch_landmark(p: &Particle, slot: usize) {
+    if let Some(l) = p.map.get(slot) {
         std::hint::black_box(l.gaussian.mean[0]);
     }
 }
@@ -111,15 +114,13 @@ fn prefetch_robot(p: &Particle, r: usize, slot: Option<usize>) {
 /// proposal. Generic over the run's measurement model, which the caller picks.
 fn move_poses<const D: usize, M: MeasurementModel<D>>(
     ctx: &StepCtx<'_>,
-    base: usize,
-    chunk: &mut [Particle],
+    c: &mut Chunk<'_>,
     headings: &[PositionHeading],
     defer: bool,
     stats: &mut FilterStats,
 ) -> Decisions {
     let cfg = ctx.cfg;
-    let r = ctx.robot;
-    let n = chunk.len();
+    let n = c.particles.len();
     let nobs = ctx.obs.len();
     let q = M::noise(&cfg.sensor_noise);
     let mut actions = vec![Action::Ignore; n * nobs];
@@ -130,19 +131,21 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
     let calibrate = cfg.odometry_calibration.enabled();
     let first_slot = ctx.obs.iter().find_map(|o| o.slot);
     for i in 0..n {
-        if let Some(ahead) = chunk.get(i + PREFETCH_AHEAD) {
-            prefetch_robot(ahead, r, first_slot);
+        if let (Some(slot), Some(ahead)) = (first_slot, c.particles.get(i + PREFETCH_AHEAD)) {
+            prefetch_landmark(ahead, slot);
         }
-        let p = &mut chunk[i];
-        let prev = p.poses[r];
-        let prev_cov = p.pose_covs[r];
-        // The particle's stream of this step (32 bytes, a few dozen instructions to seed).
-        let rng = &mut ctx.streams.lane((base + i) as u64);
+        let p = &mut c.particles[i];
+        let prev = c.poses[i];
+        let prev_cov = c.pose_covs[i];
+        // The particle's index in the filter, which keys its random stream of this step (32
+        // bytes, a few dozen instructions to seed) and its entries in other robots' lists.
+        let particle = c.base + i;
+        let rng = &mut ctx.streams.lane(particle as u64);
         let acts = &mut actions[i * nobs..(i + 1) * nobs];
         let bll = &mut best_ll[i * nobs..(i + 1) * nobs];
         let point = prev_cov.iter().all(|v| *v == 0.0);
         let inc = if calibrate {
-            scaled_increment(ctx, p, rng)
+            scaled_increment(ctx, &mut c.odometry_scales[i], rng)
         } else {
             ctx.inc
         };
@@ -158,18 +161,20 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
             let (pose, pc, dw) = if ctx.sightings.is_empty() {
                 (mean0, pc0, 0.0)
             } else {
-                sighting_update(ctx, &qs, p, mean0, pc0)
+                sighting_update(ctx, &qs, particle, mean0, pc0)
             };
-            p.poses[r] = pose;
-            p.pose_covs[r] = upper3(&pc);
+            c.poses[i] = pose;
+            c.pose_covs[i] = upper3(&pc);
             p.log_w += dw;
             continue;
         }
-        p.pose_covs[r] = [0.0; 6];
+        c.pose_covs[i] = [0.0; 6];
         if v2 && nobs > 0 {
             associate_record::<D, M>(ctx, &q, &p.map, &mean0, &pc0, acts, bll);
-            if let Some((pose, dw)) = propose::<D, M>(ctx, &q, p, &mean0, &pc0, acts, bll, rng) {
-                p.poses[r] = pose;
+            if let Some((pose, dw)) =
+                propose::<D, M>(ctx, &q, &p.map, particle, &mean0, &pc0, acts, bll, rng)
+            {
+                c.poses[i] = pose;
                 p.log_w += dw;
                 weigh_in_update[i] = false;
                 continue;
@@ -181,7 +186,7 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
         } else {
             sample_gaussian(&mean0, &pc0, rng)
         };
-        p.poses[r] = pose;
+        c.poses[i] = pose;
         if nobs > 0 {
             associate_record::<D, M>(ctx, &q, &p.map, &pose, &Matrix3::zeros(), acts, bll);
         }
@@ -200,13 +205,12 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
 /// association, the slots each particle observed (updated or created).
 fn update_landmarks(
     ctx: &StepCtx<'_>,
-    chunk: &mut [Particle],
+    chunk: &mut Chunk<'_>,
     d: &Decisions,
     stats: &mut FilterStats,
 ) -> Option<Vec<Vec<usize>>> {
     let cfg = ctx.cfg;
-    let r = ctx.robot;
-    let n = chunk.len();
+    let n = chunk.particles.len();
     let outlier = cfg.association_params.outlier;
     let mut inputs: Vec<UpdateInput> = Vec::with_capacity(n);
     let mut outputs: Vec<UpdateOutput> = Vec::with_capacity(n);
@@ -217,8 +221,7 @@ fn update_landmarks(
     for (j, o) in ctx.obs.iter().enumerate() {
         inputs.clear();
         who.clear();
-        for (i, p) in chunk.iter_mut().enumerate() {
-            let pose = p.poses[r];
+        for (i, (p, &pose)) in chunk.particles.iter_mut().zip(&*chunk.poses).enumerate() {
             let mut action = d.action(i, j);
             let v1 = d.weigh_in_update[i];
             let mut weigh = v1;
@@ -304,7 +307,7 @@ fn update_landmarks(
         stats.update_nanos += t0.elapsed().as_nanos() as u64;
         stats.landmark_updates += inputs.len() as u64;
         for (&(i, s, weigh), out) in who.iter().zip(&outputs) {
-            let p = &mut chunk[i];
+            let p = &mut chunk.particles[i];
             if weigh {
                 let ll = if out.log_likelihood.is_finite() {
                     out.log_likelihood
@@ -345,25 +348,21 @@ fn update_landmarks(
 /// Phase 3: sightings of other robots weigh each particle by the same mixture, with the
 /// sighting noise, marginal over the other robot's pose Gaussian (the deferred path and
 /// 2.0's proposal with `sightings_in_proposal` weighed them already).
-fn weigh_sightings(ctx: &StepCtx<'_>, chunk: &mut [Particle], d: &Decisions) {
+fn weigh_sightings(ctx: &StepCtx<'_>, chunk: &mut Chunk<'_>, d: &Decisions) {
     let cfg = ctx.cfg;
-    let r = ctx.robot;
     let qs = cfg.sighting_noise.q2();
-    for (i, p) in chunk.iter_mut().enumerate() {
+    for (i, (p, pose)) in chunk.particles.iter_mut().zip(&*chunk.poses).enumerate() {
         if !d.weigh_in_update[i] && cfg.sightings_in_proposal {
             continue;
         }
         for &(other, z) in ctx.sightings {
-            let pt = sym3(&p.pose_covs[other]);
-            let ll = sighting_marginal(
-                &p.poses[r],
-                &Matrix3::zeros(),
-                &p.poses[other],
-                &pt,
-                &qs,
-                &z,
-            )
-            .map_or(f64::NEG_INFINITY, |m| m.0);
+            let ll = ctx
+                .others
+                .get(other, chunk.base + i)
+                .and_then(|(target, cov)| {
+                    sighting_marginal(pose, &Matrix3::zeros(), target, &sym3(cov), &qs, &z)
+                })
+                .map_or(f64::NEG_INFINITY, |m| m.0);
             p.log_w += log_add_exp(ll, ctx.sighting_clutter);
         }
     }
@@ -374,7 +373,7 @@ fn weigh_sightings(ctx: &StepCtx<'_>, chunk: &mut [Particle], d: &Decisions) {
 /// more often stays and takes the other's observation count and existence.
 fn merge_close_landmarks(
     ctx: &StepCtx<'_>,
-    chunk: &mut [Particle],
+    chunk: &mut Chunk<'_>,
     observed: &[Vec<usize>],
     stats: &mut FilterStats,
 ) {
@@ -383,7 +382,7 @@ fn merge_close_landmarks(
     if sep2 <= 0.0 {
         return;
     }
-    for (i, p) in chunk.iter_mut().enumerate() {
+    for (i, p) in chunk.particles.iter_mut().enumerate() {
         for &s in &observed[i] {
             let Some(l) = p.map.get(s).copied() else {
                 continue;
@@ -432,17 +431,15 @@ fn merge_close_landmarks(
 /// zero.
 fn lower_existence_in_view(
     ctx: &StepCtx<'_>,
-    chunk: &mut [Particle],
+    chunk: &mut Chunk<'_>,
     observed: &[Vec<usize>],
     stats: &mut FilterStats,
 ) {
-    let r = ctx.robot;
     let a = &ctx.cfg.association_params;
     let Some(range) = &ctx.cfg.sensor_range else {
         return;
     };
-    for (i, p) in chunk.iter_mut().enumerate() {
-        let pose = p.poses[r];
+    for (i, (p, &pose)) in chunk.particles.iter_mut().zip(&*chunk.poses).enumerate() {
         let seen = &observed[i];
         let mut missed: Vec<usize> = Vec::new();
         let reach = covering_radius(range.max_range * range.max_range);

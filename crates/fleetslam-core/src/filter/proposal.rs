@@ -15,20 +15,24 @@ use nalgebra::{Matrix2, Matrix2x3, Matrix3, SMatrix, Vector2, Vector3};
 use rand::Rng;
 use rand_distr::StandardNormal;
 
-/// Log-likelihood of a sighting `z` (range, bearing) of a robot at `target` (position
-/// covariance `pt`, the 2x2 block of its pose covariance) from `pose` (pose covariance
-/// `pr`), with sighting noise `qs`, and the Kalman gain and innovation that update `pose`'s
-/// Gaussian with it: the marginal over both robots' pose Gaussians (a point pose has a zero
-/// covariance). `None` for a degenerate geometry.
-#[allow(clippy::type_complexity)]
+/// Log-likelihood of a sighting `z` (range, bearing) of robot `other` from `pose` (pose
+/// covariance `pr`) in the particle of index `particle`, where `other` stands at its pose
+/// there with its pose covariance's position block, with sighting noise `qs`; and the
+/// Kalman gain and innovation that update `pose`'s Gaussian with it: the marginal over both
+/// robots' pose Gaussians (a point pose has a zero covariance). `None` for a degenerate
+/// geometry, or for the stepping robot itself (whose sightings are refused before a step).
+#[allow(clippy::type_complexity, clippy::too_many_arguments)]
 pub(super) fn sighting_marginal(
+    ctx: &StepCtx<'_>,
+    particle: usize,
+    other: usize,
     pose: &Pose2,
     pr: &Matrix3<f64>,
-    target: &Pose2,
-    pt: &Matrix3<f64>,
     qs: &Matrix2<f64>,
     z: &[f64; 2],
 ) -> Option<(f64, Matrix2x3<f64>, Matrix2<f64>, Vector2<f64>)> {
+    let (target, target_cov) = ctx.others.get(other, particle)?;
+    let pt = sym3(target_cov);
     let (zhat, hm, hx) = RangeBearingModel::predict(pose, &[target.x, target.y, 0.0])?;
     let ptp = pt.fixed_view::<2, 2>(0, 0).into_owned();
     let s = qs + hm * ptp * hm.transpose() + hx * pr * hx.transpose();
@@ -189,9 +193,7 @@ pub(super) fn sighting_step(
     mu: &Pose2,
     pc: &Matrix3<f64>,
 ) -> Option<(f64, Pose2, Matrix3<f64>)> {
-    let (target, target_cov) = ctx.others.get(other, particle)?;
-    let pt = sym3(target_cov);
-    let (ll, hx, s_inv, nu) = sighting_marginal(mu, pc, target, &pt, qs, z)?;
+    let (ll, hx, s_inv, nu) = sighting_marginal(ctx, particle, other, mu, pc, qs, z)?;
     let k = pc * hx.transpose() * s_inv;
     let d = k * nu;
     let next = Pose2::new(mu.x + d[0], mu.y + d[1], wrap_angle(mu.theta + d[2]));

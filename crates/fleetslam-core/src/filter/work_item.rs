@@ -356,13 +356,9 @@ fn weigh_sightings(ctx: &StepCtx<'_>, chunk: &mut Chunk<'_>, d: &Decisions) {
             continue;
         }
         for &(other, z) in ctx.sightings {
-            let ll = ctx
-                .others
-                .get(other, chunk.base + i)
-                .and_then(|(target, cov)| {
-                    sighting_marginal(pose, &Matrix3::zeros(), target, &sym3(cov), &qs, &z)
-                })
-                .map_or(f64::NEG_INFINITY, |m| m.0);
+            let ll =
+                sighting_marginal(ctx, chunk.base + i, other, pose, &Matrix3::zeros(), &qs, &z)
+                    .map_or(f64::NEG_INFINITY, |m| m.0);
             p.log_w += log_add_exp(ll, ctx.sighting_clutter);
         }
     }

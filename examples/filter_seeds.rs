@@ -6,6 +6,9 @@
 //! cargo run --release --example filter_seeds -- control-noise [--seeds 1-5] \
 //!     [--particles 100] [--duration 60]
 //! cargo run --release --example filter_seeds -- sims [--seeds 1-5] [--particles 100]
+//! cargo run --release --example filter_seeds -- late-join [--seeds 1-5] [--particles 200] \
+//!     [--duration 200] [--join-after 60]
+//! cargo run --release --example filter_seeds -- range-noise [--seeds 1-5] [--particles 100]
 //! cargo run --release --example filter_seeds -- clusters [--seeds 1-5] [--particles 200]
 //! cargo run --release --example filter_seeds -- victoria [--seeds 1] [--particles 100] \
 //!     [--duration S] [--dataset DIR]
@@ -22,7 +25,12 @@
 //! high-control-noise scenario with FastSLAM 1.0 and 2.0 per seed and prints ATE and
 //! landmark NEES. `sims` checks the settings tuned on MRCLAM on simulations they were not
 //! tuned on (other noise, landmark densities, fields of view, motion), FastSLAM 2.0 with and
-//! without deferred pose sampling and 1.0, and prints team ATE per scenario. `clusters`
+//! without deferred pose sampling and 1.0, and prints team ATE per scenario. `range-noise`
+//! checks the range noise that grows with the range (`sensor_noise.range_per_m`, which
+//! MRCLAM's header suggests) on simulations whose sensor has such noise: the filter told the
+//! true model against one told a constant range noise. `late-join` runs MRCLAM with robot 5's
+//! start forgotten and its records before `--join-after` seconds dropped, and prints when it
+//! joined and its error after joining. `clusters`
 //! checks the minimum landmark separation that MRCLAM's `--no-ids` header suggests (half the
 //! smallest distance between landmark groups) on simulations without ids whose landmarks
 //! stand in groups of 2-3 features, as MRCLAM's barcodes do, at other group spacings,
@@ -51,17 +59,19 @@ use fleetslam_core::sensor::SensorNoise;
 use fleetslam_data::evaluate::{EvalOptions, evaluate};
 use fleetslam_data::formats::Truth;
 use fleetslam_data::import::{VictoriaOptions, import_victoria_park};
-use fleetslam_data::run::{TrajectoryEstimate, run_log};
+use fleetslam_data::run::{JoinOptions, TrajectoryEstimate, run_log, run_log_joining};
 use fleetslam_data::sim::{SimConfig, simulate};
+use fleetslam_localize::{LateJoinSlam, LocalizeConfig};
 use fleetslam_suite::experiments::{
-    control_noise, experiment_config, mrclam, mrclam_eval_options, run, run_and_evaluate,
+    control_noise, experiment_config, first_record_time, mrclam, mrclam_eval_options, run,
+    run_and_evaluate,
 };
 use std::path::PathBuf;
 use std::time::Instant;
 
 fn usage() -> ! {
     eprintln!(
-        "usage: filter_seeds mrclam|control-noise|sims|clusters|victoria|speed|snapshot [--no-ids] [--seeds A-B|a,b,c] \
+        "usage: filter_seeds mrclam|control-noise|sims|range-noise|clusters|victoria|speed|snapshot [--no-ids] [--seeds A-B|a,b,c] \
          [--particles N] [--version 1|2] [--duration S] [--dataset DIR] [--windows S]"
     );
     std::process::exit(2)
@@ -102,6 +112,7 @@ fn main() {
     let mut dataset = PathBuf::from("../shared/datasets/mrclam-dataset6");
     let mut odometry_delay: Option<f64> = None;
     let mut windows: Option<f64> = None;
+    let mut join_after = 60.0;
     let mut it = args[1..].iter();
     while let Some(a) = it.next() {
         let mut val = || it.next().cloned().unwrap_or_else(|| usage());
@@ -120,6 +131,7 @@ fn main() {
             "--dataset" => dataset = PathBuf::from(val()),
             "--odometry-delay" => odometry_delay = Some(val().parse().unwrap_or_else(|_| usage())),
             "--windows" => windows = Some(val().parse().unwrap_or_else(|_| usage())),
+            "--join-after" => join_after = val().parse().unwrap_or_else(|_| usage()),
             _ => usage(),
         }
     }
@@ -269,6 +281,104 @@ fn main() {
                         mean(&ates),
                         max(&ates)
                     );
+                }
+                println!("{line}");
+            }
+        }
+        "late-join" => {
+            // Robot 5 forgets its start and joins `--join-after` s into the log (default 60),
+            // as tests/late_joiner.rs does on its 200-s slice at 200 particles.
+            let seeds = seeds.unwrap_or_else(|| (1..=5).collect());
+            let particles = particles.unwrap_or(200);
+            let imp = mrclam(&dataset, false, duration.or(Some(200.0)), odometry_delay);
+            let t_start = first_record_time(&imp.log);
+            let join_at = t_start + join_after;
+            println!(
+                "MRCLAM Dataset 6, robot 5 joins {:.0} s in, {particles} particles{}",
+                join_at - t_start,
+                duration.map_or(", first 200 s".to_string(), |d| format!(", first {d} s"))
+            );
+            let (mut late, mut r5s, mut teams) = (Vec::new(), Vec::new(), Vec::new());
+            for &seed in &seeds {
+                let mut cfg = experiment_config(&imp.log.header);
+                cfg.particles = particles;
+                cfg.seed = seed;
+                let mut run = LateJoinSlam::new(cfg, LocalizeConfig::default()).expect("config");
+                let jo = JoinOptions {
+                    unknown: vec!["5".into()],
+                    join_at: Some(join_at),
+                    localize: LocalizeConfig::default(),
+                };
+                let out =
+                    run_log_joining(&mut run, &imp.log, TrajectoryEstimate::Mean, &jo, |_, _| {})
+                        .expect("run");
+                let joined = out.metrics.joiners[0].joined_at.map(|t| t - join_at);
+                let ev = evaluate(&out.estimate, &imp.truth, true, &Default::default());
+                let r5 = ev.robots.get("5").map_or(f64::NAN, |r| r.ate_rmse);
+                println!(
+                    "seed {seed:>2}: joined {} s after join_at, robot 5 after joining ATE \
+                     {r5:.3} m, team ATE {:.3} m",
+                    joined.map_or("never".into(), |j| format!("{j:.1}")),
+                    ev.team.ate_rmse
+                );
+                late.push(joined.unwrap_or(f64::NAN));
+                r5s.push(r5);
+                teams.push(ev.team.ate_rmse);
+            }
+            println!(
+                "mean: joined {:.1} s (latest {:.1} s), robot 5 {:.3} m (worst {:.3} m), team \
+                 {:.3} m over {} seeds",
+                mean(&late),
+                max(&late),
+                mean(&r5s),
+                max(&r5s),
+                mean(&teams),
+                seeds.len()
+            );
+        }
+        "range-noise" => {
+            let seeds = seeds.unwrap_or_else(|| (1..=5).collect());
+            let particles = particles.unwrap_or(100);
+            println!(
+                "range noise that grows with the range, {particles} particles, 120 s, seeds \
+                 {seeds:?}: team ATE mean (worst) of the filter told the true model \
+                 (range_per_m), the true model with twice its growth, and a constant range \
+                 noise, the true one at half and at the whole sensor range"
+            );
+            for (name, make) in range_noise_scenarios() {
+                let mut line = format!("{name:<52}");
+                let probe = make(0);
+                let true_noise = probe.true_sensor_noise;
+                let max_range = probe.sensor_range.max_range;
+                for (label, at) in [
+                    ("true", None),
+                    ("growth x2", Some(-2.0)),
+                    ("half", Some(0.5)),
+                    ("whole", Some(1.0)),
+                ] {
+                    let mut ates = Vec::new();
+                    for &seed in &seeds {
+                        let sim = simulate(&make(seed)).expect("valid simulation");
+                        let mut cfg = experiment_config(&sim.log.header);
+                        cfg.particles = particles;
+                        cfg.seed = seed;
+                        match at {
+                            // The growth doubled, as MRCLAM's header suggests twice the
+                            // growth measured there.
+                            Some(f) if f < 0.0 => cfg.sensor_noise.range_per_m *= -f,
+                            Some(at) => {
+                                cfg.sensor_noise.range = true_noise.range_std_at(at * max_range);
+                                cfg.sensor_noise.range_per_m = 0.0;
+                            }
+                            None => {}
+                        }
+                        let mut slam = FastSlam::new(cfg).expect("valid configuration");
+                        let out = run_log(&mut slam, &sim.log, TrajectoryEstimate::Mean, |_, _| {})
+                            .expect("run");
+                        let ev = evaluate(&out.estimate, &sim.truth, true, &Default::default());
+                        ates.push(ev.team.ate_rmse);
+                    }
+                    line += &format!(" | {label}: {:.3} ({:.3})", mean(&ates), max(&ates));
                 }
                 println!("{line}");
             }
@@ -674,9 +784,64 @@ fn scaled_noise(n: &MotionNoise, k: f64) -> MotionNoise {
     }
 }
 
+/// Simulations whose range noise grows with the range (a camera that ranges by apparent
+/// size), none of them MRCLAM: other fleets, fields of view, ranges and landmark densities.
+fn range_noise_scenarios() -> Scenarios {
+    let base = |seed| SimConfig {
+        seed,
+        duration: 120.0,
+        true_sensor_noise: SensorNoise {
+            range: 0.02,
+            range_per_m: 0.05,
+            bearing: 0.01,
+            ..SensorNoise::default()
+        },
+        ..SimConfig::default()
+    };
+    vec![
+        (
+            "3 robots, 20 landmarks, 6 m 180 deg, 0.02 m + 5 %",
+            Box::new(base),
+        ),
+        (
+            "5 robots, odometry, 12 landmarks, 5 m 60 deg",
+            Box::new(move |seed| SimConfig {
+                robots: 5,
+                landmarks: 12,
+                motion_model: MotionModel::Odometry,
+                sensor_range: SensorRange {
+                    max_range: 5.0,
+                    fov: 60f64.to_radians(),
+                },
+                ..base(seed)
+            }),
+        ),
+        (
+            "1 robot, 40 landmarks, 12 m all round, 0.05 m + 8 %",
+            Box::new(move |seed| SimConfig {
+                robots: 1,
+                landmarks: 40,
+                sensor_range: SensorRange {
+                    max_range: 12.0,
+                    fov: 2.0 * std::f64::consts::PI,
+                },
+                true_sensor_noise: SensorNoise {
+                    range: 0.05,
+                    range_per_m: 0.08,
+                    bearing: 0.02,
+                    ..SensorNoise::default()
+                },
+                ..base(seed)
+            }),
+        ),
+    ]
+}
+
+/// Named simulations, each made for a seed.
+type Scenarios = Vec<(&'static str, Box<dyn Fn(u64) -> SimConfig>)>;
+
 /// Simulated scenarios none of the filter's settings were tuned on.
-#[allow(clippy::type_complexity)]
-fn scenarios() -> Vec<(&'static str, Box<dyn Fn(u64) -> SimConfig>)> {
+fn scenarios() -> Scenarios {
     let base = |seed| SimConfig {
         seed,
         duration: 120.0,

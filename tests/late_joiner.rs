@@ -7,7 +7,7 @@ use fleetslam_data::evaluate::{EvalOptions, evaluate};
 use fleetslam_data::import::{MrclamOptions, import_mrclam};
 use fleetslam_data::run::{JoinOptions, TrajectoryEstimate, run_log, run_log_joining};
 use fleetslam_localize::{LateJoinSlam, LocalizeConfig};
-use fleetslam_suite::{dataset, small_sim};
+use fleetslam_suite::{dataset, experiments, small_sim};
 
 #[test]
 fn mrclam_robot_5_joins_after_the_others_mapped_for_a_minute() {
@@ -19,15 +19,14 @@ fn mrclam_robot_5_joins_after_the_others_mapped_for_a_minute() {
         ..Default::default()
     };
     let imp = import_mrclam(&dir, &opts).unwrap();
-    let t_start = imp
-        .log
-        .records
-        .iter()
-        .map(|r| r.t)
-        .fold(f64::INFINITY, f64::min);
+    let t_start = experiments::first_record_time(&imp.log);
     let join_at = t_start + 60.0;
     let mut cfg = FilterConfig::from_header(&imp.log.header);
-    cfg.particles = 100;
+    // 200 particles: with the range noise that grows with the range (the header's since
+    // session 21) 100 were too few on this slice (`cargo run --release --example filter_seeds
+    // -- late-join --particles N`, seeds 1-5: robot 5 after joining 0.399 m at 100 particles
+    // against 0.271 m with the constant 0.3 m; at 200, 0.229 m against 0.305 m).
+    cfg.particles = 200;
     cfg.seed = 1;
     let mut run = LateJoinSlam::new(cfg, LocalizeConfig::default()).unwrap();
     let jo = JoinOptions {
@@ -47,9 +46,10 @@ fn mrclam_robot_5_joins_after_the_others_mapped_for_a_minute() {
         j.localization.stats.updates,
         j.localization.samples
     );
-    // Measured (with the header's odometry calibration): joined 2.8 s after join_at,
-    // robot 5 0.286 m after joining; without calibration 4.4 s and 0.387 m.
-    assert!(joined - join_at < 5.0, "joined {} s late", joined - join_at);
+    // Measured (the header's odometry calibration and range noise): joined 1.6 s after
+    // join_at, robot 5 0.173 m after joining, team 0.184 m. Before the range noise (100
+    // particles, constant 0.3 m): 2.8 s and 0.286 m.
+    assert!(joined - join_at < 2.0, "joined {} s late", joined - join_at);
     // Its trajectory starts when it joined; evaluated against Vicon in the shared frame.
     let traj = &out.estimate.trajectories["5"];
     assert!(traj.first().unwrap().t >= joined);
@@ -60,7 +60,8 @@ fn mrclam_robot_5_joins_after_the_others_mapped_for_a_minute() {
         r5.ate_rmse, r5.ate_max, r5.matched_poses, ev.team.ate_rmse
     );
     assert!(r5.matched_poses > 100);
-    assert!(r5.ate_rmse < 0.32, "robot 5 ATE {} m", r5.ate_rmse);
+    assert!(r5.ate_rmse < 0.19, "robot 5 ATE {} m", r5.ate_rmse);
+    assert!(ev.team.ate_rmse < 0.2, "team ATE {} m", ev.team.ate_rmse);
     for id in ["1", "2", "3", "4"] {
         assert!(
             ev.robots[id].ate_rmse < 0.8,

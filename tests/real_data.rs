@@ -50,17 +50,17 @@ fn mrclam_five_robots_shared_map_500_particles() {
     let ev = evaluate(&out.estimate, &imp.truth, true, &EvalOptions::default());
     println!("{ev}");
     assert_eq!(ev.robots.len(), 5);
-    // Measured 0.214 m (landmarks 0.159 m, 15/15; robots 0.155-0.277 m); seeds 1-4
-    // 0.185-0.214 m, mean 0.198 m. With the ChaCha8 streams of sessions 1-16, 0.194 m
-    // (landmarks 0.113 m) and a mean of 0.203 m over seeds 1-4: another draw of the same
-    // noise. Before deferred sampling and the odometry delay, 0.213 m, and seed 2 lost
-    // robot 4 (0.39 m); dead reckoning is about 2.8 m on the full run.
-    assert!(ev.team.ate_rmse < 0.22, "team ATE {} m", ev.team.ate_rmse);
+    // Measured 0.171 m (landmarks 0.073 m, 15/15; robots 0.132-0.211 m) with the range
+    // noise that grows with the range (the header's suggestion with ids since session 21);
+    // with the constant 0.3 m before it, 0.214 m (landmarks 0.159 m; robots 0.155-0.277 m).
+    // Before deferred sampling and the odometry delay, 0.213 m, and seed 2 lost robot 4
+    // (0.39 m); dead reckoning is about 2.8 m on the full run.
+    assert!(ev.team.ate_rmse < 0.18, "team ATE {} m", ev.team.ate_rmse);
     for (id, r) in &ev.robots {
-        assert!(r.ate_rmse < 0.29, "robot {id} ATE {} m", r.ate_rmse);
+        assert!(r.ate_rmse < 0.22, "robot {id} ATE {} m", r.ate_rmse);
     }
     let lm = ev.team.landmark_rmse.expect("MRCLAM has landmark truth");
-    assert!(lm < 0.17, "landmark RMSE {lm} m");
+    assert!(lm < 0.08, "landmark RMSE {lm} m");
     assert!(
         ev.team.landmarks_matched == 15,
         "{} landmarks matched",

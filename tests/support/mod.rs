@@ -88,6 +88,15 @@ pub mod experiments {
         import_mrclam(dir, &opts).expect("import MRCLAM")
     }
 
+    /// The time of the log's first record (MRCLAM's robots start their odometry at
+    /// different times): where a late joiner's delay is counted from.
+    pub fn first_record_time(log: &Log) -> f64 {
+        log.records
+            .iter()
+            .map(|r| r.t)
+            .fold(f64::INFINITY, f64::min)
+    }
+
     /// How a run on MRCLAM is evaluated: by id with ids; without, against the truth's
     /// landmark groups, each matched within [`MRCLAM_GROUP_RADIUS`].
     pub fn mrclam_eval_options(no_ids: bool) -> EvalOptions {

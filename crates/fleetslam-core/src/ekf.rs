@@ -28,7 +28,7 @@ use nalgebra::{Matrix2, Matrix3, SMatrix};
 #[derive(Debug, Clone)]
 pub struct EkfUpdater {
     kind: LandmarkKind,
-    q2: Matrix2<f64>,
+    noise: SensorNoise,
     q3: Matrix3<f64>,
     /// The instruction set a batch is compiled for, detected at construction: AVX2 where
     /// the CPU has it, as the learned updater's passes (a fair comparison). Rust never fuses
@@ -40,7 +40,7 @@ impl EkfUpdater {
     pub fn new(kind: LandmarkKind, noise: &SensorNoise) -> Self {
         Self {
             kind,
-            q2: noise.q2(),
+            noise: *noise,
             q3: noise.q3(),
             arch: pulp::Arch::new(),
         }
@@ -55,10 +55,11 @@ impl EkfUpdater {
     /// One update in measurement model `M` with noise `q` (the 2D one in 2x2 matrices).
     #[inline(always)]
     fn update<const D: usize, M: MeasurementModel<D>>(
-        q: &SMatrix<f64, D, D>,
+        noise: &SensorNoise,
         inp: &UpdateInput,
         needs: UpdateNeeds,
     ) -> UpdateOutput {
+        let q = &M::noise(noise, &inp.z);
         let prior = &inp.prior;
         let Some((zhat, h, _)) = M::predict(&inp.pose, &prior.mean) else {
             return UpdateOutput::rejected(prior);
@@ -100,12 +101,12 @@ impl pulp::WithSimd for Batch<'_> {
         match u.kind {
             LandmarkKind::RangeBearing2d => {
                 for (i, o) in self.inputs.iter().zip(self.outputs.iter_mut()) {
-                    *o = EkfUpdater::update::<2, RangeBearingModel>(&u.q2, i, needs);
+                    *o = EkfUpdater::update::<2, RangeBearingModel>(&u.noise, i, needs);
                 }
             }
             LandmarkKind::Point3d => {
                 for (i, o) in self.inputs.iter().zip(self.outputs.iter_mut()) {
-                    *o = EkfUpdater::update::<3, Point3Model>(&u.q3, i, needs);
+                    *o = EkfUpdater::update::<3, Point3Model>(&u.noise, i, needs);
                 }
             }
         }
@@ -157,7 +158,7 @@ impl LandmarkUpdater for EkfUpdater {
                 // sight and its normal scaled by the range.
                 let (s, c) = (pose.theta + z[1]).sin_cos();
                 let hinv = Matrix2::new(c, -z[0] * s, s, z[0] * c);
-                let cov = hinv * self.q2 * hinv.transpose();
+                let cov = hinv * self.noise.q2_at(z[0]) * hinv.transpose();
                 LandmarkGaussian::from_2d([x, y], &cov)
             }
             LandmarkKind::Point3d => {
@@ -197,6 +198,7 @@ mod tests {
             range: 0.1,
             bearing: 0.05,
             xyz: [0.1, 0.2, 0.3],
+            range_per_m: 0.0,
         }
     }
 
@@ -227,6 +229,60 @@ mod tests {
         assert!((out.mahalanobis2 - 4.0).abs() < 1e-12);
         let ll = -2.0 - LN_2PI - 0.5 * (0.02f64 * 0.005).ln();
         assert!((out.log_likelihood - ll).abs() < 1e-12);
+    }
+
+    #[test]
+    fn range_noise_that_grows_with_range_is_the_constant_noise_at_that_range() {
+        // range_per_m = 0.05: a reading of range r has range std √(0.1² + (0.05 r)²); the
+        // update (and a new landmark) must equal the constant-noise EKF's at that std.
+        let grow = SensorNoise {
+            range_per_m: 0.05,
+            ..noise()
+        };
+        let u = EkfUpdater::new(LandmarkKind::RangeBearing2d, &grow);
+        let prior = LandmarkGaussian {
+            mean: [4.0, 1.0, 0.0],
+            cov: [0.04, 0.01, 0.0, 0.03, 0.0, 0.0],
+        };
+        let pose = Pose2::new(0.5, -0.2, 0.3);
+        for z in [[1.0f64, 0.1, 0.0], [4.2, 0.02, 0.0], [9.0, -0.3, 0.0]] {
+            let fixed = SensorNoise {
+                range: (0.1f64.powi(2) + (0.05 * z[0]).powi(2)).sqrt(),
+                ..noise()
+            };
+            let v = EkfUpdater::new(LandmarkKind::RangeBearing2d, &fixed);
+            let (a, b) = (
+                u.update(&UpdateInput { prior, pose, z }),
+                v.update(&UpdateInput { prior, pose, z }),
+            );
+            let close = |x: f64, y: f64| (x - y).abs() <= 1e-12 * (1.0 + y.abs());
+            for (x, y) in a.posterior.mean.iter().zip(&b.posterior.mean) {
+                assert!(close(*x, *y), "z {z:?}: {a:?} against {b:?}");
+            }
+            for (x, y) in a.posterior.cov.iter().zip(&b.posterior.cov) {
+                assert!(close(*x, *y), "z {z:?}: {a:?} against {b:?}");
+            }
+            assert!(close(a.log_likelihood, b.log_likelihood), "z {z:?}");
+            assert!(close(a.mahalanobis2, b.mahalanobis2), "z {z:?}");
+            let (na, nb) = (u.initialize(&pose, &z), v.initialize(&pose, &z));
+            for (x, y) in na.cov.iter().zip(&nb.cov) {
+                assert!(close(*x, *y), "z {z:?}: {na:?} against {nb:?}");
+            }
+        }
+        // With it, a far reading moves the landmark less than the constant noise does.
+        let z = [6.0, 0.3, 0.0];
+        let (a, b) = (
+            u.update(&UpdateInput { prior, pose, z }),
+            EkfUpdater::new(LandmarkKind::RangeBearing2d, &noise()).update(&UpdateInput {
+                prior,
+                pose,
+                z,
+            }),
+        );
+        let moved = |o: &UpdateOutput| {
+            (o.posterior.mean[0] - prior.mean[0]).hypot(o.posterior.mean[1] - prior.mean[1])
+        };
+        assert!(moved(&a) < moved(&b), "{a:?} against {b:?}");
     }
 
     #[test]

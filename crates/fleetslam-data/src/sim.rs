@@ -337,6 +337,7 @@ impl SimConfig {
             ("xyz[0]", n.xyz[0]),
             ("xyz[1]", n.xyz[1]),
             ("xyz[2]", n.xyz[2]),
+            ("range_per_m", n.range_per_m),
         ] {
             check(v.is_finite() && v >= 0.0, || {
                 format!("true_sensor_noise.{name} must be a finite number >= 0, got {v}")
@@ -581,7 +582,7 @@ fn observe_landmarks(
         };
         let z = match cfg.kind {
             LandmarkKind::RangeBearing2d => {
-                let r = r + noise.range * normal(rng);
+                let r = r + noise.range_std_at(r) * normal(rng);
                 let b = wrap_angle(b + noise.bearing * normal(rng));
                 if r <= 0.0 {
                     continue;
@@ -648,6 +649,7 @@ fn suggested(noise: &SensorNoise) -> SensorNoise {
         range: f(noise.range),
         bearing: f(noise.bearing),
         xyz: noise.xyz.map(f),
+        range_per_m: noise.range_per_m,
     }
 }
 

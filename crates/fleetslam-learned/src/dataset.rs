@@ -477,7 +477,7 @@ pub fn synthetic_rows_biased(
                     continue;
                 };
                 [
-                    zh[0] + bias[0] + noise.range * g(&mut rng),
+                    zh[0] + bias[0] + noise.range_std_at(zh[0]) * g(&mut rng),
                     zh[1] + bias[1] + noise.bearing * g(&mut rng),
                     0.0,
                 ]

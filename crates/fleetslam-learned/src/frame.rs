@@ -166,7 +166,10 @@ pub(crate) fn frame2(inp: &UpdateInput, noise: &SensorNoise) -> Option<Frame<2>>
     Some(Frame {
         t,
         sigma,
-        q: SVector::<f64, 2>::new(noise.range * noise.range, q * noise.bearing * noise.bearing),
+        q: SVector::<f64, 2>::new(
+            noise.range_var_at(inp.z[0]),
+            q * noise.bearing * noise.bearing,
+        ),
         nu,
         ll_scale: r,
         dist: r,

@@ -100,7 +100,11 @@ impl MlpUpdater {
         }
         let (m, r) = (&model.noise, &config.sensor_noise);
         let pairs: Vec<(f64, f64)> = match config.landmark_kind {
-            LandmarkKind::RangeBearing2d => vec![(m.range, r.range), (m.bearing, r.bearing)],
+            LandmarkKind::RangeBearing2d => vec![
+                (m.range, r.range),
+                (m.bearing, r.bearing),
+                (m.range_per_m, r.range_per_m),
+            ],
             LandmarkKind::Point3d => (0..3).map(|k| (m.xyz[k], r.xyz[k])).collect(),
         };
         if pairs
@@ -335,6 +339,7 @@ mod tests {
             range: 0.1,
             bearing: 0.03,
             xyz: [0.05, 0.08, 0.1],
+            range_per_m: 0.0,
         }
     }
 

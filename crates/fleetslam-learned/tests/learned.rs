@@ -41,6 +41,7 @@ fn noise() -> SensorNoise {
         range: 0.1,
         bearing: 0.03,
         xyz: [0.05; 3],
+        range_per_m: 0.0,
     }
 }
 

@@ -142,6 +142,7 @@ pub const SENSOR_NOISE: SensorNoise = SensorNoise {
     range: 0.1,
     bearing: 0.05,
     xyz: [0.05; 3],
+    range_per_m: 0.0,
 };
 
 /// One simulated run: the map, the records and the true pose after each record.

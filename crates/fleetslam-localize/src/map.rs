@@ -261,7 +261,9 @@ impl LandmarkIndex {
 #[derive(Debug, Clone)]
 pub struct Scorer<'a> {
     map: &'a LandmarkSet,
+    /// The range-bearing noise, scaled: `q2` at range 0, and its growth with the range.
     q2: Matrix2<f64>,
+    range_per_m: f64,
     q3: Matrix3<f64>,
     params: LikelihoodParams,
     index: Option<LandmarkIndex>,
@@ -287,6 +289,7 @@ impl<'a> Scorer<'a> {
         Self {
             map,
             q2: noise.q2() * s2,
+            range_per_m: noise.range_per_m * params.noise_scale,
             q3: noise.q3() * s2,
             params,
             index,
@@ -315,11 +318,11 @@ impl<'a> Scorer<'a> {
     /// bit for bit that of the whole scan.
     fn indexed_best(&self, index: &LandmarkIndex, pose: &Pose2, z: &[f64; 3]) -> Option<f64> {
         let b = self.params.outlier_mahalanobis2;
-        let dr = (b * (index.max_trace + self.q2[(0, 0)])).sqrt();
+        let q2 = self.q2_at(z);
+        let dr = (b * (index.max_trace + q2[(0, 0)])).sqrt();
         let rmax = z[0].max(0.0) + dr;
-        let radius = (dr + (b * (index.max_trace + rmax * rmax * self.q2[(1, 1)])).sqrt())
-            * (1.0 + 1e-9)
-            + 1e-9;
+        let radius =
+            (dr + (b * (index.max_trace + rmax * rmax * q2[(1, 1)])).sqrt()) * (1.0 + 1e-9) + 1e-9;
         let a = pose.theta + z[1];
         let p = [pose.x + z[0] * a.cos(), pose.y + z[0] * a.sin()];
         index
@@ -330,6 +333,20 @@ impl<'a> Scorer<'a> {
 
     pub fn map(&self) -> &LandmarkSet {
         self.map
+    }
+
+    /// The (scaled) range-bearing noise of a reading `z`: its range variance grows with the
+    /// measured range by `range_per_m` ([`SensorNoise::range_per_m`]).
+    #[inline]
+    fn q2_at(&self, z: &[f64; 3]) -> Matrix2<f64> {
+        if self.range_per_m == 0.0 {
+            self.q2
+        } else {
+            let g = self.range_per_m * z[0];
+            let mut q = self.q2;
+            q[(0, 0)] += g * g;
+            q
+        }
     }
 
     /// Resolves a record's observations. Observations whose id the map does not hold are
@@ -369,12 +386,13 @@ impl<'a> Scorer<'a> {
             LandmarkKind::RangeBearing2d => {
                 let r = (l.mean[0] - pose.x).hypot(l.mean[1] - pose.y);
                 let nr = z[0] - r;
-                if nr * nr > bound * (tr + self.q2[(0, 0)]) {
+                let q2 = self.q2_at(z);
+                if nr * nr > bound * (tr + q2[(0, 0)]) {
                     return None;
                 }
                 let (zhat, hm, _) = RangeBearingModel::predict(pose, &l.mean)?;
                 let nu = RangeBearingModel::innovation(z, &zhat);
-                gaussian_ll::<2, RangeBearingModel>(&self.q2, l, &nu, &hm)
+                gaussian_ll::<2, RangeBearingModel>(&q2, l, &nu, &hm)
             }
             LandmarkKind::Point3d => {
                 let (zhat, hm, _) = Point3Model::predict(pose, &l.mean)?;
@@ -394,7 +412,7 @@ impl<'a> Scorer<'a> {
     /// the outlier bound is below the floor, so skipping it changes nothing.
     #[inline]
     pub fn obs_ll(&self, pose: &Pose2, o: &ResolvedObs) -> f64 {
-        let floor = self.floor();
+        let floor = self.floor_at(&o.z);
         let best = match o.landmark {
             Some(i) => self.landmark_ll(pose, &o.z, &self.map.landmarks[i].gaussian),
             None => match &self.index {
@@ -419,8 +437,13 @@ impl<'a> Scorer<'a> {
     /// The constant a reading gets when no landmark explains it: the Gaussian of the sensor
     /// noise alone at the outlier boundary, `-b/2 - (d ln 2π + ln det Q)/2`.
     pub fn floor(&self) -> f64 {
+        self.floor_at(&[0.0; 3])
+    }
+
+    /// The [floor](Self::floor) of reading `z`, whose range sets its range noise.
+    pub fn floor_at(&self, z: &[f64; 3]) -> f64 {
         let (dim, logdet) = match self.map.kind {
-            LandmarkKind::RangeBearing2d => (2, self.q2.determinant().ln()),
+            LandmarkKind::RangeBearing2d => (2, self.q2_at(z).determinant().ln()),
             LandmarkKind::Point3d => (3, self.q3.determinant().ln()),
         };
         gaussian_log_density(self.params.outlier_mahalanobis2, logdet, dim)
@@ -484,6 +507,48 @@ mod tests {
         let sv = Scorer::new(&vague, &SensorNoise::default(), exact);
         assert!(sv.record_ll(&Pose2::default(), &r) < at);
         assert!(sv.record_ll(&Pose2::new(1.0, 0.0, 0.0), &r) > off);
+    }
+
+    #[test]
+    fn range_noise_that_grows_with_range_scores_as_the_constant_noise_at_that_range() {
+        let map = one(LandmarkKind::RangeBearing2d, [3.0, 0.5, 0.0]);
+        let params = LikelihoodParams {
+            noise_scale: 1.5,
+            ..Default::default()
+        };
+        let grow = SensorNoise {
+            range: 0.05,
+            range_per_m: 0.04,
+            ..SensorNoise::default()
+        };
+        let s = Scorer::new(&map, &grow, params);
+        for (z, pose) in [
+            ([3.1, 0.15], Pose2::default()),
+            ([2.7, 0.2], Pose2::new(0.2, 0.1, 0.05)),
+            ([6.0, 0.1], Pose2::default()),
+        ] {
+            let fixed = SensorNoise {
+                range: grow.range_std_at(z[0]),
+                range_per_m: 0.0,
+                ..grow
+            };
+            let f = Scorer::new(&map, &fixed, params);
+            let o = ResolvedObs {
+                z: [z[0], z[1], 0.0],
+                landmark: Some(0),
+            };
+            let (a, b) = (s.obs_ll(&pose, &o), f.obs_ll(&pose, &o));
+            assert!(
+                (a - b).abs() < 1e-12 * (1.0 + b.abs()),
+                "{z:?}: {a} against {b}"
+            );
+            assert!((s.floor_at(&o.z) - f.floor()).abs() < 1e-12, "{z:?}");
+            let anon = ResolvedObs {
+                landmark: None,
+                ..o
+            };
+            assert!((s.obs_ll(&pose, &anon) - b).abs() < 1e-12 * (1.0 + b.abs()));
+        }
     }
 
     #[test]

@@ -20,6 +20,7 @@ const SENSOR: SensorNoise = SensorNoise {
     range: 0.1,
     bearing: 0.03,
     xyz: [0.05; 3],
+    range_per_m: 0.0,
 };
 
 fn noise() -> MotionNoise {

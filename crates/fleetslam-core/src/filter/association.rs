@@ -38,7 +38,7 @@ pub(super) fn world_point<const D: usize>(
         LandmarkKind::RangeBearing2d => {
             let (x, y) = range_bearing_inverse(pose, z[0], z[1]);
             let n = &cfg.sensor_noise;
-            (x, y, n.range * n.range + (z[0] * n.bearing).powi(2))
+            (x, y, q[(0, 0)] + (z[0] * n.bearing).powi(2))
         }
         LandmarkKind::Point3d => {
             let w = crate::sensor::point3_inverse(pose, z);
@@ -71,7 +71,8 @@ pub(super) fn match_ll<const D: usize, M: MeasurementModel<D>>(
 /// explains at most one observation of the record and each observation at most one
 /// landmark. Writes each observation's action and the Gaussian log-likelihood of the
 /// landmark that explains it best (its match, or the best landmark left free by the others;
-/// `-inf` if none) into `acts` and `best_ll`. `p` is the pose covariance (zero in 1.0).
+/// `-inf` if none) into `acts` and `best_ll`. `p` is the pose covariance (zero in 1.0),
+/// `q[j]` observation `j`'s measurement noise.
 ///
 /// Unknown association is greedy by likelihood: the pairs within the gate are taken best
 /// first. An observation left without a landmark starts one if it lies beyond `new_landmark`
@@ -80,7 +81,7 @@ pub(super) fn match_ll<const D: usize, M: MeasurementModel<D>>(
 #[allow(clippy::too_many_arguments)]
 pub(super) fn associate_record<const D: usize, M: MeasurementModel<D>>(
     ctx: &StepCtx<'_>,
-    q: &SMatrix<f64, D, D>,
+    q: &[SMatrix<f64, D, D>],
     map: &LandmarkMap,
     pose: &Pose2,
     p: &Matrix3<f64>,
@@ -108,6 +109,7 @@ pub(super) fn associate_record<const D: usize, M: MeasurementModel<D>>(
     let mut points = Vec::with_capacity(ctx.obs.len());
     let sep2 = cfg.association_params.min_separation.powi(2);
     for (j, o) in ctx.obs.iter().enumerate() {
+        let q = &q[j];
         let (wx, wy, q_world) = world_point(cfg, q, pose, &o.z);
         points.push((wx, wy));
         let pose_term = pose_term + p[(2, 2)] * (o.z[0] * o.z[0] + o.z[1] * o.z[1]);
@@ -166,7 +168,7 @@ pub(super) fn associate_record<const D: usize, M: MeasurementModel<D>>(
         let (wx, wy) = points[j];
         let near_fresh = fresh.iter().any(|g| {
             (g.mean[0] - wx).powi(2) + (g.mean[1] - wy).powi(2) < sep2
-                || match_ll::<D, M>(q, g, pose, p, &o.z)
+                || match_ll::<D, M>(&q[j], g, pose, p, &o.z)
                     .is_none_or(|(m2, _)| m2 <= ctx.new_landmark)
         });
         if !near_fresh {

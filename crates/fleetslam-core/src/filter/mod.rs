@@ -354,6 +354,10 @@ struct Obs {
     id: Option<u32>,
     /// Known association: the landmark's slot.
     slot: Option<usize>,
+    /// Log density of this observation if no mapped landmark explains it (the sensor
+    /// noise's at the new-landmark distance; it depends on the measured range when the
+    /// range noise does).
+    clutter: f64,
 }
 
 /// Read-only inputs of one step, shared by the work items.
@@ -379,9 +383,8 @@ struct StepCtx<'a> {
     /// the run's measurement dimension.
     gate: f64,
     new_landmark: f64,
-    /// Log density of a landmark observation that no mapped landmark explains.
-    clutter: f64,
-    /// The same for a robot sighting (range-bearing, the sighting noise).
+    /// Log density of a robot sighting that no robot explains (range-bearing, the sighting
+    /// noise).
     sighting_clutter: f64,
     /// Whether FastSLAM 2.0 defers the pose sampling of records without landmark
     /// observations (`defer_pose_sampling` for the filter's current number of robots).
@@ -644,7 +647,20 @@ impl FastSlam {
                 let id = (cfg.association == Association::Known)
                     .then_some(o.id)
                     .flatten();
-                Obs { z, id, slot }
+                let clutter = if cfg.landmark_kind == LandmarkKind::RangeBearing2d
+                    && cfg.sensor_noise.range_per_m > 0.0
+                {
+                    let q_logdet = cfg.sensor_noise.q2_at(z[0]).determinant().ln();
+                    cfg.association_params.clutter_for(2, q_logdet)
+                } else {
+                    self.derived.clutter
+                };
+                Obs {
+                    z,
+                    id,
+                    slot,
+                    clutter,
+                }
             })
             .filter(|o| cfg.association == Association::Unknown || o.slot.is_some())
             .collect();
@@ -698,7 +714,6 @@ impl FastSlam {
             known_len,
             gate: d.gate,
             new_landmark: d.new_landmark,
-            clutter: d.clutter,
             sighting_clutter: d.sighting_clutter,
             defer: cfg.defer_pose_sampling.defers(self.robots.len()),
         };
@@ -1758,6 +1773,7 @@ mod tests {
             z: [2.0, 0.0, 0.0],
             id: Some(7),
             slot: Some(0),
+            clutter: -10.0,
         }];
         let ctx = StepCtx {
             cfg: &cfg,
@@ -1777,11 +1793,13 @@ mod tests {
             known_len: 1,
             gate: 9.0,
             new_landmark: 16.0,
-            clutter: -10.0,
             sighting_clutter: -10.0,
             defer: true,
         };
-        let q = RangeBearingModel::noise(&cfg.sensor_noise);
+        let q = [RangeBearingModel::noise(
+            &cfg.sensor_noise,
+            &[1.0, 0.0, 0.0],
+        )];
         let part = &f.particles()[0];
         let mut acts = [Action::Update(0)];
         let mut rng = stream(0, 0, 0);

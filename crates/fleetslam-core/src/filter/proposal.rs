@@ -52,7 +52,7 @@ pub(super) fn sighting_marginal(
 #[allow(clippy::too_many_arguments)]
 pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
     ctx: &StepCtx<'_>,
-    q: &SMatrix<f64, D, D>,
+    q: &[SMatrix<f64, D, D>],
     map: &LandmarkMap,
     particle: usize,
     mean0: &Pose2,
@@ -69,31 +69,31 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
         let landmark = match acts[j] {
             Action::Update(s) => s,
             Action::New(Some(_)) | Action::Outlier => {
-                dw += ctx.clutter;
+                dw += o.clutter;
                 continue;
             }
             Action::New(None) | Action::Ignore => {
-                dw += log_add_exp(best_ll[j], ctx.clutter);
+                dw += log_add_exp(best_ll[j], o.clutter);
                 continue;
             }
         };
         let pose = Pose2::new(mu[0], mu[1], mu[2]);
         let Some(lm) = map.get(landmark) else {
             acts[j] = Action::Outlier;
-            dw += ctx.clutter;
+            dw += o.clutter;
             continue;
         };
         let Some((zhat, hm, hx)) = M::predict(&pose, &lm.gaussian.mean) else {
             acts[j] = Action::Outlier;
-            dw += ctx.clutter;
+            dw += o.clutter;
             continue;
         };
-        let qj = hm * M::cov(&lm.gaussian) * hm.transpose() + q;
+        let qj = hm * M::cov(&lm.gaussian) * hm.transpose() + q[j];
         let pht = pc * hx.transpose();
         let s = hx * pht + qj;
         let Some((s_inv, det)) = M::inverse_det(&s) else {
             acts[j] = Action::Outlier;
-            dw += ctx.clutter;
+            dw += o.clutter;
             continue;
         };
         let nu = M::innovation(&o.z, &zhat);
@@ -105,7 +105,7 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
             } else {
                 f64::NEG_INFINITY
             },
-            ctx.clutter,
+            o.clutter,
         );
         if outlier.is_some_and(|b| m2.is_nan() || m2 > b) {
             acts[j] = Action::Outlier;

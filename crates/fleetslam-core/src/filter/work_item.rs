@@ -14,7 +14,7 @@ use crate::pose::{Pose2, PositionHeading, wrap_angle};
 use crate::sensor::{LandmarkKind, MeasurementModel, Point3Model, RangeBearingModel};
 use crate::stats::log_add_exp;
 use crate::updater::{UpdateInput, UpdateNeeds, UpdateOutput};
-use nalgebra::Matrix3;
+use nalgebra::{Matrix3, SMatrix};
 use std::time::Instant;
 
 /// What phase 1 decided for each particle of a work item, for the phases after it.
@@ -122,7 +122,12 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
     let cfg = ctx.cfg;
     let n = c.particles.len();
     let nobs = ctx.obs.len();
-    let q = M::noise(&cfg.sensor_noise);
+    // Each observation's measurement noise (it may grow with the measured range).
+    let q: Vec<SMatrix<f64, D, D>> = ctx
+        .obs
+        .iter()
+        .map(|o| M::noise(&cfg.sensor_noise, &o.z))
+        .collect();
     let mut actions = vec![Action::Ignore; n * nobs];
     let mut best_ll = vec![f64::NEG_INFINITY; n * nobs];
     let mut weigh_in_update = vec![true; n];
@@ -233,7 +238,7 @@ fn update_landmarks(
                 action = Action::Update(s);
                 if !v1 {
                     // The proposal counted it as clutter; its likelihood comes from the update.
-                    p.log_w -= ctx.clutter;
+                    p.log_w -= o.clutter;
                     weigh = true;
                 }
             }
@@ -257,7 +262,7 @@ fn update_landmarks(
                         hits: 1,
                     };
                     if v1 {
-                        p.log_w += log_add_exp(d.best_ll(i, j), ctx.clutter);
+                        p.log_w += log_add_exp(d.best_ll(i, j), o.clutter);
                     }
                     let s = match slot {
                         Some(s) => {
@@ -273,13 +278,13 @@ fn update_landmarks(
                 }
                 Action::Ignore => {
                     if v1 {
-                        p.log_w += log_add_exp(d.best_ll(i, j), ctx.clutter);
+                        p.log_w += log_add_exp(d.best_ll(i, j), o.clutter);
                     }
                     stats.ignored_observations += 1;
                 }
                 Action::Outlier => {
                     if v1 {
-                        p.log_w += ctx.clutter;
+                        p.log_w += o.clutter;
                     }
                     stats.outliers += 1;
                 }
@@ -314,7 +319,7 @@ fn update_landmarks(
                 } else {
                     f64::NEG_INFINITY
                 };
-                p.log_w += log_add_exp(ll, ctx.clutter);
+                p.log_w += log_add_exp(ll, o.clutter);
             }
             if outlier.is_some_and(|b| out.mahalanobis2.is_nan() || out.mahalanobis2 > b) {
                 stats.outliers += 1;

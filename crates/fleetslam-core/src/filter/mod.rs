@@ -63,7 +63,7 @@ use crate::rng::{LANE_ADD_ROBOT, LANE_RESAMPLE, StepStreams, stream};
 use crate::sensor::LandmarkKind;
 use crate::updater::{LandmarkGaussian, LandmarkUpdater};
 use gauss::{cholesky_psd, normal3, sym3};
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::{Matrix2, Matrix3, Vector3};
 use proposal::draw_scales;
 use rand::Rng;
 use rayon::prelude::*;
@@ -360,6 +360,20 @@ struct Obs {
     clutter: f64,
 }
 
+/// A sighting of another robot, resolved before the parallel part.
+#[derive(Debug, Clone, Copy)]
+struct Sighting {
+    /// The seen robot's index.
+    robot: usize,
+    /// Range and bearing.
+    z: [f64; 2],
+    /// The sighting noise at this range.
+    q: Matrix2<f64>,
+    /// Log density of the sighting if no robot explains it (the sighting noise's at the
+    /// new-landmark distance).
+    clutter: f64,
+}
+
 /// Read-only inputs of one step, shared by the work items.
 struct StepCtx<'a> {
     cfg: &'a FilterConfig,
@@ -373,7 +387,7 @@ struct StepCtx<'a> {
     /// Their square roots.
     std: [f64; 3],
     obs: &'a [Obs],
-    sightings: &'a [(usize, [f64; 2])],
+    sightings: &'a [Sighting],
     /// The other robots' poses in the particles, for the sightings.
     others: OtherRobots<'a>,
     /// The particles' random streams of this step (lane: the particle's slot).
@@ -383,9 +397,6 @@ struct StepCtx<'a> {
     /// the run's measurement dimension.
     gate: f64,
     new_landmark: f64,
-    /// Log density of a robot sighting that no robot explains (range-bearing, the sighting
-    /// noise).
-    sighting_clutter: f64,
     /// Whether FastSLAM 2.0 defers the pose sampling of records without landmark
     /// observations (`defer_pose_sampling` for the filter's current number of robots).
     defer: bool,
@@ -670,7 +681,22 @@ impl FastSlam {
         let mut unmatched = 0;
         for s in &rec.robots {
             match self.robot_index(&s.robot) {
-                Some(j) => sightings.push((j, [s.z[0], s.z[1]])),
+                Some(j) => {
+                    let noise = &cfg.sighting_noise;
+                    let (q, clutter) = if noise.range_per_m > 0.0 {
+                        let q = noise.q2_at(s.z[0]);
+                        let clutter = cfg.association_params.clutter_for(2, q.determinant().ln());
+                        (q, clutter)
+                    } else {
+                        (noise.q2(), self.derived.sighting_clutter)
+                    };
+                    sightings.push(Sighting {
+                        robot: j,
+                        z: [s.z[0], s.z[1]],
+                        q,
+                        clutter,
+                    })
+                }
                 None => unmatched += 1,
             }
         }
@@ -714,7 +740,6 @@ impl FastSlam {
             known_len,
             gate: d.gate,
             new_landmark: d.new_landmark,
-            sighting_clutter: d.sighting_clutter,
             defer: cfg.defer_pose_sampling.defers(self.robots.len()),
         };
 
@@ -1164,7 +1189,7 @@ mod tests {
     use crate::log::LandmarkObservation;
     use crate::map::Landmark;
     use crate::motion::{MotionNoise, covariance_in_world};
-    use crate::sensor::{MeasurementModel, RangeBearingModel, range_bearing_predict};
+    use crate::sensor::{MeasurementModel, RangeBearingModel, SensorNoise, range_bearing_predict};
 
     fn still() -> MotionNoise {
         MotionNoise {
@@ -1628,6 +1653,82 @@ mod tests {
     }
 
     #[test]
+    fn a_sighting_noise_that_grows_with_range_weighs_as_the_constant_noise_at_that_range() {
+        // Robot b, deferred, then moving and seeing a: with sighting noise 0.1 m + 5 % the
+        // filter must equal the one told the constant noise at that sighting's range (the
+        // deferred update, the weights and their clutter floor), 1.0 and 2.0 alike.
+        // The sighting is the one b's dead-reckoned pose at t = 4 gives.
+        let inc = Motion::Velocity(vec![[0.5, 0.1, 1.0]]).increment(&Default::default());
+        let mut b4 = Pose2::new(-5.0, 0.0, 0.0);
+        for _ in 0..4 {
+            b4 = b4.compose(&inc);
+        }
+        let (zh, _, _) = range_bearing_predict(&b4, 0.0, 0.0).unwrap();
+        let z = [zh[0], zh[1]];
+        for version in [FastSlamVersion::V1, FastSlamVersion::V2] {
+            let run = |sighting_noise: SensorNoise| {
+                let mut f = FastSlam::new(FilterConfig {
+                    particles: 16,
+                    version,
+                    sighting_noise,
+                    seed: 5,
+                    ..Default::default()
+                })
+                .unwrap();
+                f.add_robot("a", &PoseGaussian::exact(Pose2::default()), 0.0)
+                    .unwrap();
+                f.add_robot("b", &PoseGaussian::exact(Pose2::new(-5.0, 0.0, 0.0)), 0.0)
+                    .unwrap();
+                for k in 1..=3 {
+                    f.step(&moving("b", k as f64, &[], &[])).unwrap();
+                }
+                f.step(&moving("b", 4.0, &[], &[("a", z)])).unwrap();
+                f.step(&moving("b", 5.0, &[[2.0, 0.2]], &[])).unwrap();
+                f
+            };
+            let grow = SensorNoise {
+                range: 0.1,
+                range_per_m: 0.05,
+                ..SensorNoise::default()
+            };
+            let fixed = SensorNoise {
+                range: grow.range_std_at(z[0]),
+                range_per_m: 0.0,
+                ..grow
+            };
+            let (a, b) = (run(grow), run(fixed));
+            let close = |x: f64, y: f64| (x - y).abs() <= 1e-9 * (1.0 + y.abs());
+            for (pa, pb) in a.particles().iter().zip(b.particles()) {
+                assert!(
+                    close(pa.log_w, pb.log_w),
+                    "{version:?}: {} {}",
+                    pa.log_w,
+                    pb.log_w
+                );
+            }
+            for (pa, pb) in a.robot_particles()[1]
+                .poses
+                .iter()
+                .zip(&b.robot_particles()[1].poses)
+            {
+                assert!(close(pa.x, pb.x) && close(pa.y, pb.y), "{pa:?} {pb:?}");
+            }
+            // And the growth matters: a constant 0.1 m weighs (or resamples) otherwise.
+            let c = run(SensorNoise {
+                range: 0.1,
+                ..SensorNoise::default()
+            });
+            let differs = a
+                .particles()
+                .iter()
+                .zip(c.particles())
+                .any(|(pa, pc)| !close(pa.log_w, pc.log_w))
+                || a.robot_particles()[1].poses != c.robot_particles()[1].poses;
+            assert!(differs, "{version:?}");
+        }
+    }
+
+    #[test]
     fn weight_falls_monotonically_with_the_mahalanobis_distance() {
         for version in [FastSlamVersion::V1, FastSlamVersion::V2] {
             for association in [Association::Known, Association::Unknown] {
@@ -1793,7 +1894,6 @@ mod tests {
             known_len: 1,
             gate: 9.0,
             new_landmark: 16.0,
-            sighting_clutter: -10.0,
             defer: true,
         };
         let q = [RangeBearingModel::noise(

@@ -121,20 +121,20 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
     // With `sightings_in_proposal`, sightings of other robots refine the proposal too: the
     // other robot's position is a landmark whose covariance is its pose covariance's
     // position block.
-    let qs = ctx.cfg.sighting_noise.q2();
     let sightings = if ctx.cfg.sightings_in_proposal {
         ctx.sightings
     } else {
         &[]
     };
-    for &(other, z) in sightings {
+    for s in sightings {
         let pose = Pose2::new(mu[0], mu[1], mu[2]);
-        let Some((ll, next, next_pc)) = sighting_step(ctx, particle, other, &z, &qs, &pose, &pc)
+        let Some((ll, next, next_pc)) =
+            sighting_step(ctx, particle, s.robot, &s.z, &s.q, &pose, &pc)
         else {
-            dw += ctx.sighting_clutter;
+            dw += s.clutter;
             continue;
         };
-        dw += log_add_exp(ll, ctx.sighting_clutter);
+        dw += log_add_exp(ll, s.clutter);
         mu = Vector3::new(next.x, next.y, next.theta);
         pc = next_pc;
     }
@@ -159,19 +159,18 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
 /// Gaussian), and the log-weight increment, each sighting's mixture likelihood.
 pub(super) fn sighting_update(
     ctx: &StepCtx<'_>,
-    qs: &Matrix2<f64>,
     particle: usize,
     mean0: Pose2,
     pc0: Matrix3<f64>,
 ) -> (Pose2, Matrix3<f64>, f64) {
     let (mut mu, mut pc, mut dw) = (mean0, pc0, 0.0);
-    for &(other, z) in ctx.sightings {
-        let Some((ll, next, next_pc)) = sighting_step(ctx, particle, other, &z, qs, &mu, &pc)
+    for s in ctx.sightings {
+        let Some((ll, next, next_pc)) = sighting_step(ctx, particle, s.robot, &s.z, &s.q, &mu, &pc)
         else {
-            dw += ctx.sighting_clutter;
+            dw += s.clutter;
             continue;
         };
-        dw += log_add_exp(ll, ctx.sighting_clutter);
+        dw += log_add_exp(ll, s.clutter);
         if next.is_finite() && next_pc.iter().all(|v| v.is_finite()) {
             mu = next;
             pc = next_pc;

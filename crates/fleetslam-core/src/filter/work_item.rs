@@ -132,7 +132,6 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
     let mut best_ll = vec![f64::NEG_INFINITY; n * nobs];
     let mut weigh_in_update = vec![true; n];
     let v2 = cfg.version == FastSlamVersion::V2;
-    let qs = cfg.sighting_noise.q2();
     let calibrate = cfg.odometry_calibration.enabled();
     let first_slot = ctx.obs.iter().find_map(|o| o.slot);
     for i in 0..n {
@@ -166,7 +165,7 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
             let (pose, pc, dw) = if ctx.sightings.is_empty() {
                 (mean0, pc0, 0.0)
             } else {
-                sighting_update(ctx, &qs, particle, mean0, pc0)
+                sighting_update(ctx, particle, mean0, pc0)
             };
             c.poses[i] = pose;
             c.pose_covs[i] = upper3(&pc);
@@ -355,16 +354,22 @@ fn update_landmarks(
 /// 2.0's proposal with `sightings_in_proposal` weighed them already).
 fn weigh_sightings(ctx: &StepCtx<'_>, chunk: &mut Chunk<'_>, d: &Decisions) {
     let cfg = ctx.cfg;
-    let qs = cfg.sighting_noise.q2();
     for (i, (p, pose)) in chunk.particles.iter_mut().zip(&*chunk.poses).enumerate() {
         if !d.weigh_in_update[i] && cfg.sightings_in_proposal {
             continue;
         }
-        for &(other, z) in ctx.sightings {
-            let ll =
-                sighting_marginal(ctx, chunk.base + i, other, pose, &Matrix3::zeros(), &qs, &z)
-                    .map_or(f64::NEG_INFINITY, |m| m.0);
-            p.log_w += log_add_exp(ll, ctx.sighting_clutter);
+        for s in ctx.sightings {
+            let ll = sighting_marginal(
+                ctx,
+                chunk.base + i,
+                s.robot,
+                pose,
+                &Matrix3::zeros(),
+                &s.q,
+                &s.z,
+            )
+            .map_or(f64::NEG_INFINITY, |m| m.0);
+            p.log_w += log_add_exp(ll, s.clutter);
         }
     }
 }

@@ -320,6 +320,23 @@ struct Derived {
     sighting_clutter: f64,
 }
 
+/// A range-bearing reading's noise at its measured range `r` and the log density of the
+/// reading if nothing explains it: `constant_clutter` (derived once per filter) with the
+/// noise's constant part when its range noise does not grow with the range.
+fn range_bearing_noise(
+    noise: &crate::sensor::SensorNoise,
+    r: f64,
+    association: &crate::config::AssociationParams,
+    constant_clutter: f64,
+) -> (Matrix2<f64>, f64) {
+    if noise.range_per_m > 0.0 {
+        let q = noise.q2_at(r);
+        (q, association.clutter_for(2, q.determinant().ln()))
+    } else {
+        (noise.q2(), constant_clutter)
+    }
+}
+
 impl Derived {
     fn of(cfg: &FilterConfig) -> Self {
         let dim = cfg.landmark_kind.dim();
@@ -658,13 +675,12 @@ impl FastSlam {
                 let id = (cfg.association == Association::Known)
                     .then_some(o.id)
                     .flatten();
-                let clutter = if cfg.landmark_kind == LandmarkKind::RangeBearing2d
-                    && cfg.sensor_noise.range_per_m > 0.0
-                {
-                    let q_logdet = cfg.sensor_noise.q2_at(z[0]).determinant().ln();
-                    cfg.association_params.clutter_for(2, q_logdet)
-                } else {
-                    self.derived.clutter
+                let clutter = match cfg.landmark_kind {
+                    LandmarkKind::RangeBearing2d => {
+                        let a = &cfg.association_params;
+                        range_bearing_noise(&cfg.sensor_noise, z[0], a, self.derived.clutter).1
+                    }
+                    LandmarkKind::Point3d => self.derived.clutter,
                 };
                 Obs {
                     z,
@@ -682,14 +698,12 @@ impl FastSlam {
         for s in &rec.robots {
             match self.robot_index(&s.robot) {
                 Some(j) => {
-                    let noise = &cfg.sighting_noise;
-                    let (q, clutter) = if noise.range_per_m > 0.0 {
-                        let q = noise.q2_at(s.z[0]);
-                        let clutter = cfg.association_params.clutter_for(2, q.determinant().ln());
-                        (q, clutter)
-                    } else {
-                        (noise.q2(), self.derived.sighting_clutter)
-                    };
+                    let (q, clutter) = range_bearing_noise(
+                        &cfg.sighting_noise,
+                        s.z[0],
+                        &cfg.association_params,
+                        self.derived.sighting_clutter,
+                    );
                     sightings.push(Sighting {
                         robot: j,
                         z: [s.z[0], s.z[1]],

@@ -39,8 +39,9 @@
 //! `speed` prints the filter's cost (issue 13): wall time per particle and record and per
 //! particle and landmark observation on a simulated log with 6 or more observations per
 //! record (known ids, 100 and 1,000 particles), MRCLAM Dataset 6 with known ids at 1,000
-//! particles as a multiple of real time, and Victoria Park (unknown association, 100
-//! particles); on all the rayon threads (`RAYON_NUM_THREADS` sets them). With `--particles
+//! particles as a multiple of real time (and a second run of it, its steps timed by the
+//! kind of record), and Victoria Park (unknown association, 100 particles); on all the rayon
+//! threads (`RAYON_NUM_THREADS` sets them). With `--particles
 //! N`, only the simulated log, at N particles (a workload small enough for callgrind).
 //! `snapshot` runs MRCLAM Dataset 6 with and without ids (1,000 particles) and Victoria Park
 //! (100) and prints their final snapshots' size, write time and read-and-restore time with
@@ -548,6 +549,40 @@ fn main() {
                  {per_obs:.0} per particle and observation",
                 span(&imp.log),
                 span(&imp.log) / wall,
+            );
+            // Where that time goes: the same run stepped here (on a thread of rayon's pool,
+            // as `run_log` steps), timed by the kind of record: neither landmark observations
+            // nor sightings (2.0 moves each particle's deferred pose Gaussian), sightings only,
+            // landmark observations.
+            let mut cfg = experiment_config(&imp.log.header);
+            cfg.particles = 1000;
+            cfg.seed = seed;
+            let mut slam = FastSlam::new(cfg).expect("valid configuration");
+            fleetslam_data::run::add_header_robots(&mut slam, &imp.log).expect("header robots");
+            let mut order: Vec<&fleetslam_core::log::Record> = imp.log.records.iter().collect();
+            order.sort_by(|a, b| fleetslam_core::log::record_order(a, b));
+            let mut by_kind = [(0usize, 0.0f64); 3];
+            rayon::scope(|_| {
+                for rec in order {
+                    if slam.robot_index(&rec.robot).is_none() {
+                        continue;
+                    }
+                    let kind = match (rec.landmarks.is_empty(), rec.robots.is_empty()) {
+                        (true, true) => 0,
+                        (true, false) => 1,
+                        (false, _) => 2,
+                    };
+                    let t = Instant::now();
+                    slam.step(rec).expect("step");
+                    by_kind[kind].0 += 1;
+                    by_kind[kind].1 += t.elapsed().as_secs_f64();
+                }
+            });
+            let [none, sightings, landmarks] = by_kind;
+            println!(
+                "  its steps by record: {} without observations or sightings {:.2} s, {} with \
+                 sightings only {:.2} s, {} with landmark observations {:.2} s",
+                none.0, none.1, sightings.0, sightings.1, landmarks.0, landmarks.1
             );
             let vp = import_victoria_park(
                 &PathBuf::from("../shared/datasets/victoria-park"),

@@ -31,6 +31,7 @@
 pub mod config;
 pub mod ekf;
 pub mod filter;
+pub mod linalg;
 pub mod log;
 pub mod map;
 pub mod motion;

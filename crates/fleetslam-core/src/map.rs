@@ -137,10 +137,21 @@ pub struct LandmarkMap {
     /// Existence values newer than their landmarks' `existence` field, by slot (sorted):
     /// the existence pass lowers the value of every landmark in view on every record, and
     /// writing each into the trie would copy its leaf (after a resample, its whole path).
-    pending: Arc<Vec<(u32, f64)>>,
+    /// `None` when there are none (never an empty list), so that reading a landmark's
+    /// existence in a map without any costs no trip to the heap.
+    pending: Option<Arc<Vec<(u32, f64)>>>,
     /// No spatial index is kept ([`LandmarkMap::without_index`]); `index` stays empty and
     /// [`LandmarkMap::for_each_near`] visits every landmark.
     unindexed: bool,
+}
+
+/// A hint to fetch the cache line holding `r` (no load, no effect on results).
+#[inline(always)]
+fn prefetch<T>(r: &T) {
+    #[cfg(all(target_arch = "x86_64", target_feature = "sse"))]
+    safe_arch::prefetch_t0(r);
+    #[cfg(not(all(target_arch = "x86_64", target_feature = "sse")))]
+    let _ = r;
 }
 
 impl PartialEq for LandmarkMap {
@@ -219,6 +230,46 @@ impl LandmarkMap {
         }
     }
 
+    /// Asks the processor to fetch, without waiting for it, what lies `depth` levels below
+    /// the root on the path to `slot`: the root node's entry on that path at depth 0, the
+    /// slot's landmark at depth `height` (a larger `depth` counts as `height`). The `depth`
+    /// nodes above it are read, so a caller walks a path down in stages, one level per call
+    /// some work apart, each stage's node fetched by the one before
+    /// ([`LandmarkMap::prefetch_stages`]).
+    /// No effect on any result; nothing where the path is absent or the processor has no
+    /// prefetch instruction.
+    #[inline]
+    pub fn prefetch_path(&self, slot: usize, depth: u32) {
+        if slot >= self.slots {
+            return;
+        }
+        let Some(mut node) = self.root.as_ref() else {
+            return;
+        };
+        let walk = depth.min(self.height);
+        for level in (self.height - walk..self.height).rev() {
+            match node {
+                Node::Branch(c) => match c[Self::child(slot, level)].as_ref() {
+                    Some(n) => node = n,
+                    None => return,
+                },
+                Node::Leaf(_) => return,
+            }
+        }
+        match node {
+            Node::Branch(c) => {
+                prefetch(&c[Self::child(slot, self.height - walk - 1)]);
+            }
+            Node::Leaf(l) => prefetch(&l[slot & (LEAF - 1)]),
+        }
+    }
+
+    /// How many stages [`LandmarkMap::prefetch_path`] takes to reach a landmark: one per
+    /// branch level and one for the leaf.
+    pub fn prefetch_stages(&self) -> u32 {
+        self.height + 1
+    }
+
     /// Grows the trie (a new root above the old one) until it can hold `len` slots.
     fn grow_to(&mut self, len: usize) {
         while Self::capacity(self.height) < len {
@@ -290,14 +341,25 @@ impl LandmarkMap {
         }
     }
 
+    /// The existence values held apart, by slot (sorted).
+    pub(crate) fn pending(&self) -> &[(u32, f64)] {
+        self.pending.as_deref().map_or(&[], |v| v.as_slice())
+    }
+
     fn pending_at(&self, slot: usize) -> Result<usize, usize> {
-        self.pending.binary_search_by_key(&(slot as u32), |p| p.0)
+        self.pending().binary_search_by_key(&(slot as u32), |p| p.0)
     }
 
     /// Drops a pending existence value of `slot` (its landmark is being written whole).
     fn forget_pending(&mut self, slot: usize) {
-        if let Ok(i) = self.pending_at(slot) {
-            Arc::make_mut(&mut self.pending).remove(i);
+        if let Ok(i) = self.pending_at(slot)
+            && let Some(held) = self.pending.as_mut()
+        {
+            let v = Arc::make_mut(held);
+            v.remove(i);
+            if v.is_empty() {
+                self.pending = None;
+            }
         }
     }
 
@@ -310,7 +372,7 @@ impl LandmarkMap {
     /// if any ([`LandmarkMap::existence`] without reading the landmark again).
     pub fn current_existence(&self, slot: usize, l: &Landmark) -> f64 {
         match self.pending_at(slot) {
-            Ok(i) => self.pending[i].1,
+            Ok(i) => self.pending()[i].1,
             Err(_) => l.existence,
         }
     }
@@ -323,13 +385,15 @@ impl LandmarkMap {
             return;
         }
         let at = self.pending_at(slot);
-        let v = Arc::make_mut(&mut self.pending);
+        let v = Arc::make_mut(self.pending.get_or_insert_with(Default::default));
         match at {
             Ok(i) => v[i].1 = e,
             Err(i) => v.insert(i, (slot as u32, e)),
         }
         if v.len() > PENDING_EXISTENCE {
-            for (s, e) in std::mem::take(v) {
+            let held = std::mem::take(v);
+            self.pending = None;
+            for (s, e) in held {
                 let cell = self.cell_mut(s as usize);
                 if let Some(l) = cell {
                     l.existence = e;
@@ -810,7 +874,7 @@ mod tests {
         for s in 0..=PENDING_EXISTENCE {
             a.set_existence(s + 10, 0.125);
         }
-        assert!(a.pending.is_empty());
+        assert!(a.pending.is_none());
         for s in 0..=PENDING_EXISTENCE {
             assert_eq!(a.get(s + 10).unwrap().existence, 0.125);
             assert_eq!(a.existence(s + 10), Some(0.125));

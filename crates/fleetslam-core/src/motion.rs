@@ -273,7 +273,10 @@ pub fn covariance_in_world(prev: &Pose2, var: &[f64; 3]) -> Matrix3<f64> {
 #[inline]
 pub fn covariance_in_world_sc((s, c): (f64, f64), var: &[f64; 3]) -> Matrix3<f64> {
     let j = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
-    j * Matrix3::from_diagonal(&Vector3::new(var[0], var[1], var[2])) * j.transpose()
+    crate::linalg::sandwich(
+        &j,
+        &Matrix3::from_diagonal(&Vector3::new(var[0], var[1], var[2])),
+    )
 }
 
 #[cfg(test)]

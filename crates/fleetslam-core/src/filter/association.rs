@@ -3,6 +3,7 @@
 
 use super::{Action, StepCtx};
 use crate::config::{Association, FilterConfig};
+use crate::linalg::{mul, sandwich};
 use crate::map::{INDEX_WIDE_TRACE, LandmarkMap};
 use crate::pose::Pose2;
 use crate::sensor::{LandmarkKind, MeasurementModel, range_bearing_inverse};
@@ -59,10 +60,10 @@ pub(super) fn match_ll<const D: usize, M: MeasurementModel<D>>(
     z: &[f64; 3],
 ) -> Option<(f64, f64)> {
     let (zhat, hm, hx) = M::predict(pose, &g.mean)?;
-    let s = hm * M::cov(g) * hm.transpose() + q + hx * p * hx.transpose();
+    let s = sandwich(&hm, &M::cov(g)) + q + sandwich(&hx, p);
     let (s_inv, det) = M::inverse_det(&s)?;
     let nu = M::innovation(z, &zhat);
-    let m2 = nu.dot(&(s_inv * nu));
+    let m2 = nu.dot(&mul(&s_inv, &nu));
     let ll = gaussian_log_density(m2, det.ln(), D);
     (m2.is_finite() && ll.is_finite()).then_some((m2, ll))
 }

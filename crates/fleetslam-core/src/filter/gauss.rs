@@ -2,6 +2,7 @@
 //! of pose covariances. The measurement models' math lives in
 //! [`crate::sensor::MeasurementModel`].
 
+use crate::linalg::mul;
 use crate::pose::{Pose2, wrap_angle};
 use crate::rng::Stream;
 use nalgebra::{Matrix3, Vector3};
@@ -80,7 +81,7 @@ pub(super) fn compose_jacobian((s, c): (f64, f64), inc: &Pose2) -> Matrix3<f64> 
 pub(super) fn sample_gaussian(mean: &Pose2, cov: &Matrix3<f64>, rng: &mut Stream) -> Pose2 {
     match cholesky_psd(cov) {
         Some(l) => {
-            let e = l * normal3(rng);
+            let e = mul(&l, &normal3(rng));
             Pose2::new(mean.x + e[0], mean.y + e[1], wrap_angle(mean.theta + e[2]))
         }
         None => *mean,

@@ -318,20 +318,30 @@ struct Derived {
     clutter: f64,
     /// The same for a robot sighting (range-bearing, the sighting noise).
     sighting_clutter: f64,
+    /// The new-landmark threshold of a range-bearing reading (2 components), and the set
+    /// clutter log density if any: a reading whose noise grows with its range has a
+    /// clutter density of its own ([`range_bearing_noise`]), built from these on every
+    /// step without the χ² quantile's bisection.
+    new_landmark_2d: f64,
+    clutter_log_density: Option<f64>,
 }
 
 /// A range-bearing reading's noise at its measured range `r` and the log density of the
 /// reading if nothing explains it: `constant_clutter` (derived once per filter) with the
-/// noise's constant part when its range noise does not grow with the range.
+/// noise's constant part when its range noise does not grow with the range, else
+/// `AssociationParams::clutter_for` of the reading's own noise (from `derived`'s threshold).
 fn range_bearing_noise(
     noise: &crate::sensor::SensorNoise,
     r: f64,
-    association: &crate::config::AssociationParams,
+    derived: &Derived,
     constant_clutter: f64,
 ) -> (Matrix2<f64>, f64) {
     if noise.range_per_m > 0.0 {
         let q = noise.q2_at(r);
-        (q, association.clutter_for(2, q.determinant().ln()))
+        let clutter = derived.clutter_log_density.unwrap_or_else(|| {
+            crate::stats::gaussian_log_density(derived.new_landmark_2d, q.determinant().ln(), 2)
+        });
+        (q, clutter)
     } else {
         (noise.q2(), constant_clutter)
     }
@@ -350,6 +360,8 @@ impl Derived {
             new_landmark: a.new_landmark_for(dim),
             clutter: a.clutter_for(dim, q_logdet),
             sighting_clutter: a.clutter_for(2, cfg.sighting_noise.q2().determinant().ln()),
+            new_landmark_2d: a.new_landmark_for(2),
+            clutter_log_density: a.clutter_log_density,
         }
     }
 }
@@ -677,8 +689,8 @@ impl FastSlam {
                     .flatten();
                 let clutter = match cfg.landmark_kind {
                     LandmarkKind::RangeBearing2d => {
-                        let a = &cfg.association_params;
-                        range_bearing_noise(&cfg.sensor_noise, z[0], a, self.derived.clutter).1
+                        let d = &self.derived;
+                        range_bearing_noise(&cfg.sensor_noise, z[0], d, d.clutter).1
                     }
                     LandmarkKind::Point3d => self.derived.clutter,
                 };
@@ -701,7 +713,7 @@ impl FastSlam {
                     let (q, clutter) = range_bearing_noise(
                         &cfg.sighting_noise,
                         s.z[0],
-                        &cfg.association_params,
+                        &self.derived,
                         self.derived.sighting_clutter,
                     );
                     sightings.push(Sighting {

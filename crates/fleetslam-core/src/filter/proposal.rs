@@ -5,6 +5,7 @@
 use super::gauss::{cholesky_psd, normal3, sym3};
 use super::{Action, StepCtx};
 use crate::config::OdometryCalibration;
+use crate::linalg::{mul, mul_t, sandwich};
 use crate::map::LandmarkMap;
 use crate::motion::scale_increment;
 use crate::pose::{Pose2, wrap_angle};
@@ -35,10 +36,10 @@ pub(super) fn sighting_marginal(
     let pt = sym3(target_cov);
     let (zhat, hm, hx) = RangeBearingModel::predict(pose, &[target.x, target.y, 0.0])?;
     let ptp = pt.fixed_view::<2, 2>(0, 0).into_owned();
-    let s = qs + hm * ptp * hm.transpose() + hx * pr * hx.transpose();
+    let s = qs + sandwich(&hm, &ptp) + sandwich(&hx, pr);
     let (s_inv, det) = RangeBearingModel::inverse_det(&s)?;
     let nu = RangeBearingModel::innovation(&[z[0], z[1], 0.0], &zhat);
-    let ll = gaussian_log_density(nu.dot(&(s_inv * nu)), det.ln(), 2);
+    let ll = gaussian_log_density(nu.dot(&mul(&s_inv, &nu)), det.ln(), 2);
     ll.is_finite().then_some((ll, hx, s_inv, nu))
 }
 
@@ -88,16 +89,16 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
             dw += o.clutter;
             continue;
         };
-        let qj = hm * M::cov(&lm.gaussian) * hm.transpose() + q[j];
-        let pht = pc * hx.transpose();
-        let s = hx * pht + qj;
+        let qj = sandwich(&hm, &M::cov(&lm.gaussian)) + q[j];
+        let pht = mul_t(&pc, &hx);
+        let s = mul(&hx, &pht) + qj;
         let Some((s_inv, det)) = M::inverse_det(&s) else {
             acts[j] = Action::Outlier;
             dw += o.clutter;
             continue;
         };
         let nu = M::innovation(&o.z, &zhat);
-        let m2 = nu.dot(&(s_inv * nu));
+        let m2 = nu.dot(&mul(&s_inv, &nu));
         let ll = gaussian_log_density(m2, det.ln(), D);
         dw += log_add_exp(
             if ll.is_finite() {
@@ -111,11 +112,11 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
             acts[j] = Action::Outlier;
             continue;
         }
-        let k = pht * s_inv;
-        mu += k * nu;
+        let k = mul(&pht, &s_inv);
+        mu += mul(&k, &nu);
         mu[2] = wrap_angle(mu[2]);
-        let ikh = Matrix3::identity() - k * hx;
-        pc = ikh * pc * ikh.transpose() + k * qj * k.transpose();
+        let ikh = Matrix3::identity() - mul(&k, &hx);
+        pc = sandwich(&ikh, &pc) + sandwich(&k, &qj);
         pc = 0.5 * (pc + pc.transpose());
     }
     // With `sightings_in_proposal`, sightings of other robots refine the proposal too: the
@@ -145,7 +146,7 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
     let e = if pc.iter().all(|v| *v == 0.0) {
         Vector3::zeros()
     } else {
-        cholesky_psd(&pc)? * normal3(rng)
+        mul(&cholesky_psd(&pc)?, &normal3(rng))
     };
     Some((
         Pose2::new(mu[0] + e[0], mu[1] + e[1], wrap_angle(mu[2] + e[2])),
@@ -193,10 +194,10 @@ pub(super) fn sighting_step(
     pc: &Matrix3<f64>,
 ) -> Option<(f64, Pose2, Matrix3<f64>)> {
     let (ll, hx, s_inv, nu) = sighting_marginal(ctx, particle, other, mu, pc, qs, z)?;
-    let k = pc * hx.transpose() * s_inv;
-    let d = k * nu;
+    let k = mul(&mul_t(pc, &hx), &s_inv);
+    let d = mul(&k, &nu);
     let next = Pose2::new(mu.x + d[0], mu.y + d[1], wrap_angle(mu.theta + d[2]));
-    let next_pc = (Matrix3::identity() - k * hx) * pc;
+    let next_pc = mul(&(Matrix3::identity() - mul(&k, &hx)), pc);
     Some((ll, next, 0.5 * (next_pc + next_pc.transpose())))
 }
 

@@ -25,19 +25,13 @@ pub fn mul<const R: usize, const K: usize, const C: usize>(
     })
 }
 
-/// `a · bᵀ` (as `a * b.transpose()`, without the transposed copy).
+/// `a · bᵀ` (as `a * b.transpose()`).
 #[inline(always)]
 pub fn mul_t<const R: usize, const K: usize, const C: usize>(
     a: &SMatrix<f64, R, K>,
     b: &SMatrix<f64, C, K>,
 ) -> SMatrix<f64, R, C> {
-    SMatrix::from_fn(|i, j| {
-        let mut s = a[(i, 0)] * b[(j, 0)];
-        for k in 1..K {
-            s += a[(i, k)] * b[(j, k)];
-        }
-        s
-    })
+    mul(a, &b.transpose())
 }
 
 /// `a · m · aᵀ` (as `a * m * a.transpose()`: the left product first).

@@ -56,15 +56,24 @@ fn mrclam_robot_5_joins_after_the_others_mapped_for_a_minute() {
     let ev = evaluate(&out.estimate, &imp.truth, true, &EvalOptions::default());
     let r5 = &ev.robots["5"];
     println!(
-        "robot 5 after joining: ATE RMSE {:.3} m, max {:.3} m over {} poses; team ATE {:.3} m",
-        r5.ate_rmse, r5.ate_max, r5.matched_poses, ev.team.ate_rmse
+        "robot 5 after joining: ATE RMSE {:.3} m, max {:.3} m over {} poses; team ATE {:.3} m; \
+         robots 1-4: {:.3}, {:.3}, {:.3}, {:.3} m",
+        r5.ate_rmse,
+        r5.ate_max,
+        r5.matched_poses,
+        ev.team.ate_rmse,
+        ev.robots["1"].ate_rmse,
+        ev.robots["2"].ate_rmse,
+        ev.robots["3"].ate_rmse,
+        ev.robots["4"].ate_rmse
     );
     assert!(r5.matched_poses > 100);
     assert!(r5.ate_rmse < 0.19, "robot 5 ATE {} m", r5.ate_rmse);
     assert!(ev.team.ate_rmse < 0.2, "team ATE {} m", ev.team.ate_rmse);
-    for id in ["1", "2", "3", "4"] {
+    // The others, measured (session 22): 0.190, 0.214, 0.146 and 0.197 m.
+    for (id, bound) in [("1", 0.20), ("2", 0.23), ("3", 0.16), ("4", 0.21)] {
         assert!(
-            ev.robots[id].ate_rmse < 0.8,
+            ev.robots[id].ate_rmse < bound,
             "robot {id}: {}",
             ev.robots[id].ate_rmse
         );

@@ -3,7 +3,8 @@
 //! nalgebra's product of statically sized matrices goes through its generic `gemm`: one
 //! call, with loops over strided columns, per product. The filter takes several of these
 //! per particle and observation (2.0's proposal, the deferred pose Gaussian's motion
-//! update), where the calls and loops cost more than the arithmetic. These functions sum
+//! update): a profile of MRCLAM Dataset 6 put 4.3 % of its samples in that call alone
+//! (README, session 22). These functions sum
 //! each entry's products in the order of the inner index, first product first, exactly as
 //! nalgebra's `gemm` does (its `y = a·x·c + 1·y` column updates, with `a = 1`), so they give
 //! the same bits; the tests check that against nalgebra on random matrices.

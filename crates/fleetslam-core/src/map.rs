@@ -626,6 +626,36 @@ mod tests {
         assert_eq!(b.iter().count(), 99);
     }
 
+    /// The prefetch walks every path of tries of every height, with holes (absent leaves
+    /// and branches), past the last slot and deeper than the trie, without reading out of
+    /// bounds, and takes as many stages as levels.
+    #[test]
+    fn prefetch_walks_any_path_in_bounds() {
+        for len in [
+            0usize,
+            1,
+            LEAF,
+            LEAF + 1,
+            LEAF * BRANCH + 1,
+            LEAF * BRANCH * BRANCH + 3,
+        ] {
+            let mut m = LandmarkMap::new();
+            m.ensure_slots(len);
+            // Every third slot filled: some leaves and branches stay absent.
+            for s in (0..len).step_by(3 * LEAF + 1) {
+                m.set(s, lm(s as f64));
+            }
+            let before = m.clone();
+            assert_eq!(m.prefetch_stages(), m.height + 1);
+            for slot in 0..len + 2 * LEAF {
+                for depth in 0..=m.height + 2 {
+                    m.prefetch_path(slot, depth);
+                }
+            }
+            assert_eq!(m, before);
+        }
+    }
+
     #[test]
     fn serde_round_trip() {
         let mut a = LandmarkMap::new();

@@ -234,9 +234,14 @@ impl AssociationParams {
     /// components): unless set, the sensor noise's Gaussian density at the new-landmark
     /// threshold.
     pub fn clutter_for(&self, dim: usize, q_logdet: f64) -> f64 {
-        self.clutter_log_density.unwrap_or_else(|| {
-            crate::stats::gaussian_log_density(self.new_landmark_for(dim), q_logdet, dim)
-        })
+        self.clutter_at(self.new_landmark_for(dim), dim, q_logdet)
+    }
+
+    /// [`AssociationParams::clutter_for`] given the new-landmark threshold `new_landmark`
+    /// for `dim` components, for a caller that keeps it (a χ² quantile is a bisection).
+    pub fn clutter_at(&self, new_landmark: f64, dim: usize, q_logdet: f64) -> f64 {
+        self.clutter_log_density
+            .unwrap_or_else(|| crate::stats::gaussian_log_density(new_landmark, q_logdet, dim))
     }
 }
 

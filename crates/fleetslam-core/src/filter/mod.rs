@@ -318,29 +318,27 @@ struct Derived {
     clutter: f64,
     /// The same for a robot sighting (range-bearing, the sighting noise).
     sighting_clutter: f64,
-    /// The new-landmark threshold of a range-bearing reading (2 components), and the set
-    /// clutter log density if any: a reading whose noise grows with its range has a
-    /// clutter density of its own ([`range_bearing_noise`]), built from these on every
-    /// step without the χ² quantile's bisection.
+    /// The new-landmark threshold of a range-bearing reading (2 components): a reading
+    /// whose noise grows with its range has a clutter density of its own
+    /// ([`range_bearing_noise`]), built with it on every step without the χ² quantile's
+    /// bisection.
     new_landmark_2d: f64,
-    clutter_log_density: Option<f64>,
 }
 
 /// A range-bearing reading's noise at its measured range `r` and the log density of the
 /// reading if nothing explains it: `constant_clutter` (derived once per filter) with the
-/// noise's constant part when its range noise does not grow with the range, else
-/// `AssociationParams::clutter_for` of the reading's own noise (from `derived`'s threshold).
+/// noise's constant part when its range noise does not grow with the range, else the
+/// clutter density of the reading's own noise (`AssociationParams::clutter_for`).
 fn range_bearing_noise(
     noise: &crate::sensor::SensorNoise,
     r: f64,
+    association: &crate::config::AssociationParams,
     derived: &Derived,
     constant_clutter: f64,
 ) -> (Matrix2<f64>, f64) {
     if noise.range_per_m > 0.0 {
         let q = noise.q2_at(r);
-        let clutter = derived.clutter_log_density.unwrap_or_else(|| {
-            crate::stats::gaussian_log_density(derived.new_landmark_2d, q.determinant().ln(), 2)
-        });
+        let clutter = association.clutter_at(derived.new_landmark_2d, 2, q.determinant().ln());
         (q, clutter)
     } else {
         (noise.q2(), constant_clutter)
@@ -361,7 +359,6 @@ impl Derived {
             clutter: a.clutter_for(dim, q_logdet),
             sighting_clutter: a.clutter_for(2, cfg.sighting_noise.q2().determinant().ln()),
             new_landmark_2d: a.new_landmark_for(2),
-            clutter_log_density: a.clutter_log_density,
         }
     }
 }
@@ -689,8 +686,8 @@ impl FastSlam {
                     .flatten();
                 let clutter = match cfg.landmark_kind {
                     LandmarkKind::RangeBearing2d => {
-                        let d = &self.derived;
-                        range_bearing_noise(&cfg.sensor_noise, z[0], d, d.clutter).1
+                        let (a, d) = (&cfg.association_params, &self.derived);
+                        range_bearing_noise(&cfg.sensor_noise, z[0], a, d, d.clutter).1
                     }
                     LandmarkKind::Point3d => self.derived.clutter,
                 };
@@ -713,6 +710,7 @@ impl FastSlam {
                     let (q, clutter) = range_bearing_noise(
                         &cfg.sighting_noise,
                         s.z[0],
+                        &cfg.association_params,
                         &self.derived,
                         self.derived.sighting_clutter,
                     );
@@ -1606,6 +1604,16 @@ mod tests {
         assert!(FastSlam::from_snapshot(bad, f.updater().clone()).is_err());
     }
 
+    /// A filter of `cfg` with robot a at the origin and robot b at `b`, both known exactly
+    /// at t = 0: the set-up of the sighting tests.
+    fn robots_a_and_b(cfg: FilterConfig, b: Pose2) -> FastSlam {
+        let mut f = FastSlam::new(cfg).unwrap();
+        f.add_robot("a", &PoseGaussian::exact(Pose2::default()), 0.0)
+            .unwrap();
+        f.add_robot("b", &PoseGaussian::exact(b), 0.0).unwrap();
+        f
+    }
+
     /// A sighting is weighed against the seen robot's pose in the same particle, in every
     /// work item (the seen robot's entries lie in its own list, found by the particle's slot
     /// in the filter), whether the seeing robot defers its pose (2.0) or samples it (1.0).
@@ -1613,11 +1621,7 @@ mod tests {
     fn a_sighting_weighs_each_particle_by_its_own_pose_of_the_seen_robot() {
         let n = 41;
         for version in [FastSlamVersion::V1, FastSlamVersion::V2] {
-            let mut f = FastSlam::new(config(version, Association::Known, n)).unwrap();
-            f.add_robot("a", &PoseGaussian::exact(Pose2::default()), 0.0)
-                .unwrap();
-            f.add_robot("b", &PoseGaussian::exact(Pose2::default()), 0.0)
-                .unwrap();
+            let mut f = robots_a_and_b(config(version, Association::Known, n), Pose2::default());
             // Particle k holds robot a at 2 + 0.02 (k - 20) m ahead of b.
             let mut snap = f.snapshot();
             for (k, p) in snap.particles.iter_mut().enumerate() {
@@ -1642,15 +1646,11 @@ mod tests {
         // Robot b moves blind for 5 s; then it sees robot a (exactly at the origin) at the
         // range and bearing its true pose gives, or sees nothing.
         let run = |sight: bool| {
-            let mut f = FastSlam::new(FilterConfig {
+            let cfg = FilterConfig {
                 particles: 4,
                 ..Default::default()
-            })
-            .unwrap();
-            f.add_robot("a", &PoseGaussian::exact(Pose2::default()), 0.0)
-                .unwrap();
-            f.add_robot("b", &PoseGaussian::exact(Pose2::new(-2.0, 0.0, 0.0)), 0.0)
-                .unwrap();
+            };
+            let mut f = robots_a_and_b(cfg, Pose2::new(-2.0, 0.0, 0.0));
             for k in 1..=5 {
                 f.step(&moving("b", k as f64, &[], &[])).unwrap();
             }
@@ -1693,18 +1693,14 @@ mod tests {
         let z = [zh[0], zh[1]];
         for version in [FastSlamVersion::V1, FastSlamVersion::V2] {
             let run = |sighting_noise: SensorNoise| {
-                let mut f = FastSlam::new(FilterConfig {
+                let cfg = FilterConfig {
                     particles: 16,
                     version,
                     sighting_noise,
                     seed: 5,
                     ..Default::default()
-                })
-                .unwrap();
-                f.add_robot("a", &PoseGaussian::exact(Pose2::default()), 0.0)
-                    .unwrap();
-                f.add_robot("b", &PoseGaussian::exact(Pose2::new(-5.0, 0.0, 0.0)), 0.0)
-                    .unwrap();
+                };
+                let mut f = robots_a_and_b(cfg, Pose2::new(-5.0, 0.0, 0.0));
                 for k in 1..=3 {
                     f.step(&moving("b", k as f64, &[], &[])).unwrap();
                 }

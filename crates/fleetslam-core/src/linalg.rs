@@ -44,14 +44,13 @@ pub fn sandwich<const R: usize, const K: usize>(
     mul_t(&mul(a, m), a)
 }
 
+/// What the tests of products written out for a structure (here and in the filter) share.
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use nalgebra::{Matrix2, Matrix2x3, Matrix3, Matrix3x2, Vector2, Vector3};
+pub(crate) mod testing {
     use proptest::prelude::*;
 
     /// Entries of every sign and scale, with exact zeros and ones (as in Jacobians).
-    fn entry() -> impl Strategy<Value = f64> {
+    pub(crate) fn entry() -> impl Strategy<Value = f64> {
         prop_oneof![
             4 => -1e3..1e3f64,
             1 => -1e-6..1e-6f64,
@@ -60,6 +59,20 @@ mod tests {
             1 => Just(1.0),
         ]
     }
+
+    /// `a` and `b` are the same bits, or both zero (of either sign): what a product that
+    /// skips the terms of an exact zero or one factor keeps of the full product.
+    pub(crate) fn same_but_zero_sign(a: f64, b: f64) -> bool {
+        a.to_bits() == b.to_bits() || (a == 0.0 && b == 0.0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::testing::entry;
+    use super::*;
+    use nalgebra::{Matrix2, Matrix2x3, Matrix3, Matrix3x2, Vector2, Vector3};
+    use proptest::prelude::*;
 
     fn m<const R: usize, const C: usize>() -> impl Strategy<Value = SMatrix<f64, R, C>> {
         proptest::collection::vec(entry(), R * C).prop_map(|v| SMatrix::from_column_slice(&v))

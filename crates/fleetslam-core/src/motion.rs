@@ -17,7 +17,7 @@
 //! covariance that FastSLAM 2.0's proposal needs is exact: `R = J diag(var) J^T`.
 
 use crate::pose::Pose2;
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::Matrix3;
 use serde::{Deserialize, Serialize};
 
 /// Which motion model a run uses.
@@ -270,19 +270,52 @@ pub fn covariance_in_world(prev: &Pose2, var: &[f64; 3]) -> Matrix3<f64> {
 }
 
 /// [`covariance_in_world`] given the sine and cosine of the previous heading.
+///
+/// `J D Jᵀ` for the rotation `J = [[c, -s, 0], [s, c, 0], [0, 0, 1]]` and `D = diag(var)`,
+/// written out: [`crate::linalg::sandwich`]'s products in its order without those by the
+/// exact zeros and ones of `J` and `D` (a filter takes one per particle and record), so the
+/// same value; only the sign of an entry that is zero may differ (the zero entries are +0).
 #[inline]
 pub fn covariance_in_world_sc((s, c): (f64, f64), var: &[f64; 3]) -> Matrix3<f64> {
-    let j = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
-    crate::linalg::sandwich(
-        &j,
-        &Matrix3::from_diagonal(&Vector3::new(var[0], var[1], var[2])),
+    // The rows of J·D.
+    let (a0, a1) = (c * var[0], -s * var[1]);
+    let (b0, b1) = (s * var[0], c * var[1]);
+    Matrix3::new(
+        a0 * c + a1 * -s,
+        a0 * s + a1 * c,
+        0.0,
+        b0 * c + b1 * -s,
+        b0 * s + b1 * c,
+        0.0,
+        0.0,
+        0.0,
+        var[2],
     )
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::linalg::testing::{entry, same_but_zero_sign};
+    use nalgebra::Vector3;
+    use proptest::prelude::*;
     use std::f64::consts::PI;
+
+    proptest! {
+        /// The written-out `J D Jᵀ` is the generic product's value, entry for entry.
+        #[test]
+        fn covariance_in_world_is_the_full_product(
+            theta in prop_oneof![Just(0.0), -4.0..4.0f64], var in proptest::array::uniform3(entry()),
+        ) {
+            let (s, c) = theta.sin_cos();
+            let j = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
+            let full = crate::linalg::sandwich(&j, &Matrix3::from_diagonal(&Vector3::from(var)));
+            let got = covariance_in_world_sc((s, c), &var);
+            for (x, y) in full.iter().zip(got.iter()) {
+                prop_assert!(same_but_zero_sign(*x, *y), "{full} against {got}");
+            }
+        }
+    }
 
     #[test]
     fn velocity_straight_and_quarter_circle() {

@@ -76,6 +76,30 @@ pub(super) fn compose_jacobian((s, c): (f64, f64), inc: &Pose2) -> Matrix3<f64> 
     )
 }
 
+/// `F P Fᵀ` for `F = compose_jacobian(sc, inc)` (the identity but for its last column's
+/// `a = F[0,2]`, `b = F[1,2]`) and the symmetric `P` of upper triangle `p`: the deferred pose
+/// Gaussian's covariance carried through a motion, once per particle and record. Written
+/// out: [`crate::linalg::sandwich`]'s products in its order without those by `F`'s exact
+/// zeros and ones, so the same value; only the sign of an entry that is zero may differ.
+#[inline]
+pub(super) fn compose_sandwich(sc: (f64, f64), inc: &Pose2, p: &[f64; 6]) -> Matrix3<f64> {
+    let f = compose_jacobian(sc, inc);
+    let (a, b) = (f[(0, 2)], f[(1, 2)]);
+    let m = sym3(p);
+    // F·P: rows 0 and 1 gain a and b times row 2.
+    let g = Matrix3::from_fn(|i, j| match i {
+        0 => m[(0, j)] + a * m[(2, j)],
+        1 => m[(1, j)] + b * m[(2, j)],
+        _ => m[(2, j)],
+    });
+    // (F·P)·Fᵀ: columns 0 and 1 gain a and b times column 2.
+    Matrix3::from_fn(|i, j| match j {
+        0 => g[(i, 0)] + g[(i, 2)] * a,
+        1 => g[(i, 1)] + g[(i, 2)] * b,
+        _ => g[(i, 2)],
+    })
+}
+
 /// A sample of `N(mean, cov)` (the mean itself when `cov` has no Cholesky factor, which
 /// only a covariance with a non-finite entry lacks after the jitter).
 pub(super) fn sample_gaussian(mean: &Pose2, cov: &Matrix3<f64>, rng: &mut Stream) -> Pose2 {
@@ -91,7 +115,27 @@ pub(super) fn sample_gaussian(mean: &Pose2, cov: &Matrix3<f64>, rng: &mut Stream
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::linalg::sandwich;
+    use crate::linalg::testing::{entry, same_but_zero_sign};
     use crate::rng::stream;
+    use proptest::prelude::*;
+
+    proptest! {
+        /// The written-out `F P Fᵀ` is the generic product's value, entry for entry.
+        #[test]
+        fn compose_sandwich_is_the_full_product(
+            theta in prop_oneof![Just(0.0), -4.0..4.0f64], inc in proptest::array::uniform3(entry()),
+            p in proptest::array::uniform6(entry()),
+        ) {
+            let sc = theta.sin_cos();
+            let inc = Pose2::new(inc[0], inc[1], inc[2]);
+            let full = sandwich(&compose_jacobian(sc, &inc), &sym3(&p));
+            let got = compose_sandwich(sc, &inc, &p);
+            for (x, y) in full.iter().zip(got.iter()) {
+                prop_assert!(same_but_zero_sign(*x, *y), "{full} against {got}");
+            }
+        }
+    }
 
     /// The unrolled factor is nalgebra's bit for bit, and fails where nalgebra's fails:
     /// covariances (`A Aᵀ`, some nearly singular), indefinite symmetric matrices, and ones

@@ -2,13 +2,12 @@
 //! phases (poses and association, landmark updates, sightings, merging, existence).
 
 use super::association::{associate_record, covering_radius};
-use super::gauss::{compose_jacobian, sample_gaussian, sym3, upper3};
+use super::gauss::{compose_sandwich, sample_gaussian, upper3};
 use super::proposal::{
     propose, sample_motion, scaled_increment, sighting_marginal, sighting_update,
 };
 use super::{Action, FilterStats, Particle, StepCtx};
 use crate::config::{Association, FastSlamVersion};
-use crate::linalg::sandwich;
 use crate::map::Landmark;
 use crate::motion::covariance_in_world_sc;
 use crate::pose::{Pose2, PositionHeading, wrap_angle};
@@ -182,8 +181,7 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
         let mean0 = prev.compose_sc(&inc, sc);
         let mut pc0 = covariance_in_world_sc(sc, &ctx.var);
         if !point {
-            let f = compose_jacobian(sc, &inc);
-            pc0 += sandwich(&f, &sym3(&prev_cov));
+            pc0 += compose_sandwich(sc, &inc, &prev_cov);
         }
         if defer {
             // Most such records carry no sighting either: the prediction stands, and the

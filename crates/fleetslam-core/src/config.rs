@@ -42,8 +42,9 @@ impl DeferSampling {
 /// and one on the rotation of every motion increment, drawn at the robot's start from
 /// `N(1, std²)` and moved by a random walk of `walk_per_sqrt_s · √dt` per record (`dt` the
 /// record's motion duration; for an odometry increment or a record without motion, the
-/// time since the robot's previous record, uncapped), so that
-/// particles whose scales fit the robot's odometry survive resampling (the increment
+/// time since the robot's previous record, uncapped; FastSLAM 2.0 draws the walk of the
+/// records it keeps deferred at the robot's next record that samples, over their summed
+/// time), so that particles whose scales fit the robot's odometry survive resampling (the increment
 /// `(dx, dy, dθ)` becomes `(s_d dx, s_d dy, s_θ dθ)`, first order in the scale error of
 /// an arc). Wheel radii and track widths wear and differ from their nominal values, and
 /// commanded velocities are not what the wheels do: on MRCLAM Dataset 6 the odometry

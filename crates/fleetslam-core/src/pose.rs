@@ -95,15 +95,24 @@ impl PoseGaussian {
 }
 
 /// A pose's position and its heading's `(sin θ, cos θ)`: what a weighted mean of poses
-/// reads, kept side by side so that the mean reads contiguous memory.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
+/// reads, kept side by side so that the mean reads contiguous memory. Its `sin` and `cos`
+/// are always those of its `theta` (the default is the zero pose's).
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PositionHeading {
     pub x: f64,
     pub y: f64,
+    /// `θ`, whose sine and cosine these are.
+    pub theta: f64,
     /// `sin θ`.
     pub sin: f64,
     /// `cos θ`.
     pub cos: f64,
+}
+
+impl Default for PositionHeading {
+    fn default() -> Self {
+        Self::of(&Pose2::default())
+    }
 }
 
 impl PositionHeading {
@@ -113,8 +122,22 @@ impl PositionHeading {
         Self {
             x: p.x,
             y: p.y,
+            theta: p.theta,
             sin,
             cos,
+        }
+    }
+
+    /// Becomes [`PositionHeading::of`] `p`, computing the sine and cosine only when the
+    /// heading changed (bit for bit): a robot that drives straight or stands keeps its
+    /// heading exactly, as about 45 % of MRCLAM's records without landmarks do.
+    #[inline]
+    pub fn move_to(&mut self, p: &Pose2) {
+        if p.theta.to_bits() == self.theta.to_bits() {
+            self.x = p.x;
+            self.y = p.y;
+        } else {
+            *self = Self::of(p);
         }
     }
 
@@ -150,6 +173,26 @@ pub fn weighted_mean_pose_sc(items: impl Iterator<Item = (PositionHeading, f64)>
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_moved_heading_is_the_moved_poses() {
+        let mut h = PositionHeading::default();
+        assert_eq!(h, PositionHeading::of(&Pose2::default()));
+        for p in [
+            Pose2::new(1.0, 2.0, 0.0),
+            Pose2::new(3.0, -1.0, 0.5),
+            Pose2::new(4.0, 0.0, 0.5),
+            Pose2::new(4.0, 0.0, -0.0),
+            Pose2::new(-2.0, 7.0, PI),
+        ] {
+            h.move_to(&p);
+            let want = PositionHeading::of(&p);
+            assert_eq!(
+                [h.x, h.y, h.theta, h.sin, h.cos].map(f64::to_bits),
+                [want.x, want.y, want.theta, want.sin, want.cos].map(f64::to_bits)
+            );
+        }
+    }
 
     #[test]
     fn wrap_angle_range() {

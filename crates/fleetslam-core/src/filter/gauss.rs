@@ -119,6 +119,7 @@ mod tests {
     use crate::linalg::testing::{entry, same_but_zero_sign};
     use crate::rng::stream;
     use proptest::prelude::*;
+    use rand::Rng;
 
     proptest! {
         /// The written-out `F P Fᵀ` is the generic product's value, entry for entry.

@@ -9,7 +9,7 @@ use super::proposal::{
 use super::{Action, FilterStats, Particle, StepCtx};
 use crate::config::{Association, FastSlamVersion};
 use crate::map::Landmark;
-use crate::motion::covariance_in_world_sc;
+use crate::motion::{covariance_in_world_sc, scale_increment};
 use crate::pose::{Pose2, PositionHeading, wrap_angle};
 use crate::sensor::{LandmarkKind, MeasurementModel, Point3Model, RangeBearingModel};
 use crate::stats::log_add_exp;
@@ -69,7 +69,7 @@ pub(super) fn process_chunk(
     }
     // 2.0 with deferred sampling: a record without landmark observations moves each
     // particle's pose Gaussian of this robot (its sightings update it) instead of sampling.
-    let defer = cfg.version == FastSlamVersion::V2 && ctx.defer && ctx.obs.is_empty();
+    let defer = ctx.defer;
     let decided = match cfg.landmark_kind {
         LandmarkKind::RangeBearing2d => {
             move_poses::<2, RangeBearingModel>(ctx, chunk, headings, defer, &mut stats)
@@ -127,6 +127,26 @@ fn prefetch_landmarks(particles: &[Particle], i: usize, slots: &[usize], stages:
     }
 }
 
+/// The motion's prediction `N(mean0, pc0)` of the pose Gaussian `N(prev, prev_cov)` (a
+/// point if `point`; `sc` its heading's sine and cosine) through the increment `inc`.
+/// Inlined: returned through the stack from a call, its matrix was read back with wider loads
+/// than it was written with, which stalled the loop (a store-forwarding failure).
+#[inline(always)]
+fn predict_motion(
+    ctx: &StepCtx<'_>,
+    prev: &Pose2,
+    prev_cov: &[f64; 6],
+    point: bool,
+    sc: (f64, f64),
+    inc: &Pose2,
+) -> (Pose2, Matrix3<f64>) {
+    let mut pc0 = covariance_in_world_sc(sc, &ctx.var);
+    if !point {
+        pc0 += compose_sandwich(sc, inc, prev_cov);
+    }
+    (prev.compose_sc(inc, sc), pc0)
+}
+
 /// Phase 1: each particle's new pose of the robot (deferred Gaussian, 2.0's proposal, or
 /// 1.0's motion sample), the record's association, and in 2.0 the weights from the
 /// proposal. Generic over the run's measurement model, which the caller picks.
@@ -168,24 +188,18 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
         // The particle's index in the filter, which keys its random stream of this step (32
         // bytes, a few dozen instructions to seed) and its entries in other robots' lists.
         let particle = c.base + i;
-        let rng = &mut ctx.streams.lane(particle as u64);
-        let acts = &mut actions[i * nobs..(i + 1) * nobs];
-        let bll = &mut best_ll[i * nobs..(i + 1) * nobs];
         let point = prev_cov.iter().all(|v| *v == 0.0);
-        let inc = if calibrate {
-            scaled_increment(ctx, &mut c.odometry_scales[i], rng)
-        } else {
-            ctx.inc
-        };
         let sc = headings[i].sc();
-        let mean0 = prev.compose_sc(&inc, sc);
-        let mut pc0 = covariance_in_world_sc(sc, &ctx.var);
-        if !point {
-            pc0 += compose_sandwich(sc, &inc, &prev_cov);
-        }
         if defer {
-            // Most such records carry no sighting either: the prediction stands, and the
-            // particle (its weight, its map) is not touched.
+            // Nothing is drawn (the scales' walk waits for a record that samples), so the
+            // particle's stream is not set up. Most such records carry no sighting either:
+            // the prediction stands, and the particle (its weight, its map) is not touched.
+            let inc = if calibrate {
+                scale_increment(&ctx.inc, c.odometry_scales[i])
+            } else {
+                ctx.inc
+            };
+            let (mean0, pc0) = predict_motion(ctx, &prev, &prev_cov, point, sc, &inc);
             if ctx.sightings.is_empty() {
                 c.poses[i] = mean0;
                 c.pose_covs[i] = upper3(&pc0);
@@ -197,6 +211,15 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
             }
             continue;
         }
+        let rng = &mut ctx.streams.lane(particle as u64);
+        let inc = if calibrate {
+            scaled_increment(ctx, &mut c.odometry_scales[i], rng)
+        } else {
+            ctx.inc
+        };
+        let (mean0, pc0) = predict_motion(ctx, &prev, &prev_cov, point, sc, &inc);
+        let acts = &mut actions[i * nobs..(i + 1) * nobs];
+        let bll = &mut best_ll[i * nobs..(i + 1) * nobs];
         c.pose_covs[i] = [0.0; 6];
         if v2 && nobs > 0 {
             associate_record::<D, M>(ctx, &q, &p.map, &mean0, &pc0, acts, bll);

@@ -4,8 +4,8 @@
 //! Retry-After, nothing stored). The task drains what is queued, checks every record
 //! (repeat, too old, out of time order), stores the accepted ones in ONE append (group
 //! commit: acknowledged means committed), answers each request, feeds the records to the
-//! deterministic [`Merger`], and applies what the merger releases on a blocking thread where
-//! the filter's rayon work runs, off the async runtime. The two overlap: while the filter
+//! deterministic [`Merger`], and applies what the merger releases on a blocking thread, which
+//! steps each batch on a worker of rayon's pool, off the async runtime. The two overlap: while the filter
 //! steps through one batch, the task goes on taking requests and storing them, and the next
 //! batch starts as soon as the filter is back, so a commit's fsync and the clients' round
 //! trips do not leave the filter idle. The state it publishes is the latest estimate in a
@@ -1320,47 +1320,56 @@ impl Coordinator {
         self.stepping = Some(tokio::task::spawn_blocking(move || {
             let mut out = Applied::default();
             let started = Instant::now();
-            while let Some(r) = records.pop_front() {
-                if !out.reports.is_empty()
-                    && (started.elapsed() >= budget || out.reports.len() as u64 >= due)
-                {
-                    records.push_front(r);
-                    break;
-                }
-                let t0 = Instant::now();
-                out.last = Some(OrderKey::of(&r));
-                match poison::try_step(&mut filter, &r) {
-                    Ok(rep) => {
-                        let ns = t0.elapsed().as_nanos() as u64;
-                        if rep.joined {
-                            out.joins.push(r.robot.clone());
-                        }
-                        trajectories.push_filter(history::filter_point(
-                            filter.slam(),
-                            rep.slam.as_ref(),
-                            trajectories.last_filter(),
-                            r.t,
-                            ns,
-                        ));
-                        out.reports.push((rep.slam, ns));
-                        if let Some(i) = filter.slam().robot_index(&r.robot) {
-                            trajectories
-                                .push(&r.robot, history::trajectory_point(filter.slam(), i, r.t));
-                        }
-                        since.push(r);
+            // The batch runs on a worker of rayon's pool, as `run_log` steps: each step's
+            // parallel parts (its work items, the weights' exps, the resample) are then
+            // joins inside the pool, where from this blocking thread each was a job sent to
+            // the pool and waited for (MRCLAM's steps in `server_overhead`, session 23: 7.2-7.5
+            // s from the blocking thread, 4.7-4.8 s inside the pool).
+            rayon::scope(|_| {
+                while let Some(r) = records.pop_front() {
+                    if !out.reports.is_empty()
+                        && (started.elapsed() >= budget || out.reports.len() as u64 >= due)
+                    {
+                        records.push_front(r);
+                        break;
                     }
-                    Err(why) => {
-                        out.quarantined.push((r.robot.clone(), r.seq, why));
-                        match poison::rebuild(&base, &since, recorder.as_deref()) {
-                            Ok(f) => filter = f,
-                            Err(e) => {
-                                out.fatal = Some(e);
-                                break;
+                    let t0 = Instant::now();
+                    out.last = Some(OrderKey::of(&r));
+                    match poison::try_step(&mut filter, &r) {
+                        Ok(rep) => {
+                            let ns = t0.elapsed().as_nanos() as u64;
+                            if rep.joined {
+                                out.joins.push(r.robot.clone());
+                            }
+                            trajectories.push_filter(history::filter_point(
+                                filter.slam(),
+                                rep.slam.as_ref(),
+                                trajectories.last_filter(),
+                                r.t,
+                                ns,
+                            ));
+                            out.reports.push((rep.slam, ns));
+                            if let Some(i) = filter.slam().robot_index(&r.robot) {
+                                trajectories.push(
+                                    &r.robot,
+                                    history::trajectory_point(filter.slam(), i, r.t),
+                                );
+                            }
+                            since.push(r);
+                        }
+                        Err(why) => {
+                            out.quarantined.push((r.robot.clone(), r.seq, why));
+                            match poison::rebuild(&base, &since, recorder.as_deref()) {
+                                Ok(f) => filter = f,
+                                Err(e) => {
+                                    out.fatal = Some(e);
+                                    break;
+                                }
                             }
                         }
                     }
                 }
-            }
+            });
             (filter, trajectories, since, out, records)
         }));
         true

@@ -1269,9 +1269,7 @@ mod tests {
         offsets: &[f64],
     ) -> FastSlam {
         let cfg = config(version, association, offsets.len());
-        let mut f = FastSlam::new(cfg).unwrap();
-        f.add_robot("r", &PoseGaussian::exact(Pose2::default()), 0.0)
-            .unwrap();
+        let f = robot_r(cfg);
         let mut snap = f.snapshot();
         for (p, d) in snap.particles.iter_mut().zip(offsets) {
             p.map.push(Landmark {
@@ -1412,9 +1410,7 @@ mod tests {
         let d = FilterConfig::default();
         assert_eq!(d.defer_pose_sampling, DeferSampling::Auto);
         assert_eq!(d.version, FastSlamVersion::V2);
-        let mut f = FastSlam::new(cfg.clone()).unwrap();
-        f.add_robot("r", &PoseGaussian::exact(Pose2::default()), 0.0)
-            .unwrap();
+        let mut f = robot_r(cfg.clone());
         let inc = Motion::Velocity(vec![[0.5, 0.1, 1.0]]).increment(&cfg.ackermann);
         let mut dead_reckoned = Pose2::default();
         let mut trace = 0.0;
@@ -1488,9 +1484,7 @@ mod tests {
             defer_pose_sampling: DeferSampling::Always,
             ..Default::default()
         };
-        let mut f = FastSlam::new(cfg).unwrap();
-        f.add_robot("r", &PoseGaussian::exact(Pose2::default()), 0.0)
-            .unwrap();
+        let mut f = robot_r(cfg);
         for k in 1..=3 {
             f.step(&moving("r", k as f64, &[], &[])).unwrap();
         }
@@ -1521,10 +1515,7 @@ mod tests {
             odometry_calibration: cal,
             ..Default::default()
         };
-        let mut f = FastSlam::new(cfg).unwrap();
-        f.add_robot("r", &PoseGaussian::exact(Pose2::default()), 0.0)
-            .unwrap();
-        f
+        robot_r(cfg)
     }
 
     #[test]
@@ -1577,9 +1568,7 @@ mod tests {
             odometry_calibration: cal,
             ..Default::default()
         };
-        let mut f = FastSlam::new(cfg).unwrap();
-        f.add_robot("r", &PoseGaussian::exact(Pose2::default()), 0.0)
-            .unwrap();
+        let mut f = robot_r(cfg);
         f.step(&moving("r", 1.0, &[], &[])).unwrap();
         let inc = Motion::Velocity(vec![[0.5, 0.1, 1.0]]).increment(&f.config().ackermann);
         let r0 = &f.robot_particles()[0];
@@ -1607,9 +1596,7 @@ mod tests {
             },
             ..Default::default()
         };
-        let mut f = FastSlam::new(cfg).unwrap();
-        f.add_robot("r", &PoseGaussian::exact(Pose2::default()), 0.0)
-            .unwrap();
+        let mut f = robot_r(cfg);
         // Four records of 1 s without observations: deferred, nothing drawn.
         for k in 1..=4 {
             f.step(&moving("r", k as f64, &[], &[])).unwrap();
@@ -1678,6 +1665,14 @@ mod tests {
         bad.particles[0].odometry_scales.push([1.0; 2]);
         bad.particles[0].odometry_scales.push([1.0; 2]);
         assert!(FastSlam::from_snapshot(bad, f.updater().clone()).is_err());
+    }
+
+    /// A filter of `cfg` with robot "r" known exactly at the origin at t = 0.
+    fn robot_r(cfg: FilterConfig) -> FastSlam {
+        let mut f = FastSlam::new(cfg).unwrap();
+        f.add_robot("r", &PoseGaussian::exact(Pose2::default()), 0.0)
+            .unwrap();
+        f
     }
 
     /// A filter of `cfg` with robot a at the origin and robot b at `b`, both known exactly

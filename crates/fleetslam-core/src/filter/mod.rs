@@ -415,7 +415,9 @@ struct StepCtx<'a> {
     updater: &'a dyn LandmarkUpdater,
     inc: Pose2,
     /// The standard deviations of the odometry scales' random walk over the motion's
-    /// duration ([`proposal::scale_walk`]), the same for every particle.
+    /// duration and the deferred records' before it ([`proposal::scale_walk`],
+    /// [`RobotState::scale_walk_pending_s`]), the same for every particle; `None` on a
+    /// deferred record.
     scale_walk: Option<[f64; 2]>,
     /// Variances of the (longitudinal, lateral, heading) increment noise.
     var: [f64; 3],

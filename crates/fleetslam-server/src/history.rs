@@ -562,29 +562,32 @@ pub async fn state_at(
     let from_t = last.as_ref().map_or(f64::NEG_INFINITY, OrderKey::t);
     let records = parse_records(&records_in_time(store, run, from_t, t).await?);
     let todo = records_after_snapshot(records, &filter, last.as_ref(), Some(t));
+    // Replayed on a worker of rayon's pool, as the coordinator steps its batches.
     let (filter, applied, applied_t, trajectories) = tokio::task::spawn_blocking(move || {
-        let base = filter.clone();
-        let mut filter = filter;
-        let mut since = Vec::new();
-        let mut applied_t = last.as_ref().map(OrderKey::t);
-        for r in todo {
-            if crate::poison::try_step(&mut filter, &r).is_err() {
-                // The live run quarantined it (or will, on its next restart).
-                filter = crate::poison::rebuild(&base, &since, None)
-                    .map_err(|e| ApiError::internal(anyhow::anyhow!("replaying: {e}")))?;
-                continue;
+        rayon::scope(|_| {
+            let base = filter.clone();
+            let mut filter = filter;
+            let mut since = Vec::new();
+            let mut applied_t = last.as_ref().map(OrderKey::t);
+            for r in todo {
+                if crate::poison::try_step(&mut filter, &r).is_err() {
+                    // The live run quarantined it (or will, on its next restart).
+                    filter = crate::poison::rebuild(&base, &since, None)
+                        .map_err(|e| ApiError::internal(anyhow::anyhow!("replaying: {e}")))?;
+                    continue;
+                }
+                if with_trajectories && let Some(i) = filter.slam().robot_index(&r.robot) {
+                    trajectories
+                        .entry(r.robot.clone())
+                        .or_default()
+                        .push(trajectory_point(filter.slam(), i, r.t));
+                }
+                applied += 1;
+                applied_t = Some(r.t);
+                since.push(r);
             }
-            if with_trajectories && let Some(i) = filter.slam().robot_index(&r.robot) {
-                trajectories
-                    .entry(r.robot.clone())
-                    .or_default()
-                    .push(trajectory_point(filter.slam(), i, r.t));
-            }
-            applied += 1;
-            applied_t = Some(r.t);
-            since.push(r);
-        }
-        Ok::<_, ApiError>((filter, applied, applied_t, trajectories))
+            Ok::<_, ApiError>((filter, applied, applied_t, trajectories))
+        })
     })
     .await
     .map_err(ApiError::internal)??;

@@ -562,6 +562,9 @@ fn main() {
             let mut order: Vec<&fleetslam_core::log::Record> = imp.log.records.iter().collect();
             order.sort_by(|a, b| fleetslam_core::log::record_order(a, b));
             let mut by_kind = [(0usize, 0.0f64); 3];
+            // Records without landmarks whose motion keeps the heading exactly (no rotation:
+            // their particles' headings keep their sine and cosine).
+            let mut unturned = 0;
             rayon::scope(|_| {
                 for rec in order {
                     if slam.robot_index(&rec.robot).is_none() {
@@ -572,6 +575,13 @@ fn main() {
                         (true, false) => 1,
                         (false, _) => 2,
                     };
+                    let turn = rec
+                        .motion
+                        .as_ref()
+                        .map_or(0.0, |m| m.increment(&slam.config().ackermann).theta);
+                    if kind < 2 && turn == 0.0 {
+                        unturned += 1;
+                    }
                     let t = Instant::now();
                     slam.step(rec).expect("step");
                     by_kind[kind].0 += 1;
@@ -581,7 +591,8 @@ fn main() {
             let [none, sightings, landmarks] = by_kind;
             println!(
                 "  its steps by record: {} without observations or sightings {:.2} s, {} with \
-                 sightings only {:.2} s, {} with landmark observations {:.2} s",
+                 sightings only {:.2} s, {} with landmark observations {:.2} s; {unturned} of \
+                 those without landmarks do not turn",
                 none.0, none.1, sightings.0, sightings.1, landmarks.0, landmarks.1
             );
             let vp = import_victoria_park(

@@ -130,7 +130,8 @@ impl PositionHeading {
 
     /// Becomes [`PositionHeading::of`] `p`, computing the sine and cosine only when the
     /// heading changed (bit for bit): a robot that drives straight or stands keeps its
-    /// heading exactly, as about 45 % of MRCLAM's records without landmarks do.
+    /// heading exactly, as 9,963 of MRCLAM's 21,962 records without landmarks do
+    /// (`filter_seeds -- speed` counts them).
     #[inline]
     pub fn move_to(&mut self, p: &Pose2) {
         if p.theta.to_bits() == self.theta.to_bits() {

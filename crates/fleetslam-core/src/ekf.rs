@@ -9,12 +9,13 @@
 //! K  = Σ Hᵀ S⁻¹              gain
 //! ν  = z − h(μ, x)           innovation (bearing wrapped to (−π, π])
 //! μ' = μ + K ν
-//! Σ' = (I − K H) Σ (I − K H)ᵀ + K Q Kᵀ      (Joseph form: symmetric positive definite)
+//! Σ' = Σ − K (Σ Hᵀ)ᵀ = Σ − Σ Hᵀ S⁻¹ H Σ   (computed symmetric: linalg::kalman_posterior_cov)
 //! ln p(z) = −½ νᵀ S⁻¹ ν − ½ ln |2π S|
 //! ```
 //!
 //! A new landmark is the inverse of the measurement with `Σ = H⁻¹ Q H⁻ᵀ`.
 
+use crate::linalg::kalman_posterior_cov;
 use crate::pose::Pose2;
 use crate::sensor::{
     LandmarkKind, MeasurementModel, Point3Model, RangeBearingModel, SensorNoise, point3_inverse,
@@ -75,8 +76,7 @@ impl EkfUpdater {
         let k = sht * s_inv;
         let nu = M::innovation(&inp.z, &zhat);
         let mean = M::mean(prior) + k * nu;
-        let ikh = SMatrix::<f64, D, D>::identity() - k * h;
-        let cov = ikh * sigma * ikh.transpose() + k * q * k.transpose();
+        let cov = kalman_posterior_cov(&sigma, &k, &sht);
         finish(prior, M::gaussian(&mean, &cov), needs, || {
             let m2 = nu.dot(&(s_inv * nu));
             (gaussian_log_density(m2, det.ln(), D), m2)

@@ -5,7 +5,7 @@
 use super::gauss::{cholesky_psd, normal3, sym3};
 use super::{Action, StepCtx};
 use crate::config::OdometryCalibration;
-use crate::linalg::{mul, mul_t, sandwich};
+use crate::linalg::{kalman_posterior_cov, mul, mul_t, sandwich};
 use crate::map::LandmarkMap;
 use crate::motion::scale_increment;
 use crate::pose::{Pose2, wrap_angle};
@@ -115,9 +115,7 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
         let k = mul(&pht, &s_inv);
         mu += mul(&k, &nu);
         mu[2] = wrap_angle(mu[2]);
-        let ikh = Matrix3::identity() - mul(&k, &hx);
-        pc = sandwich(&ikh, &pc) + sandwich(&k, &qj);
-        pc = 0.5 * (pc + pc.transpose());
+        pc = kalman_posterior_cov(&pc, &k, &pht);
     }
     // With `sightings_in_proposal`, sightings of other robots refine the proposal too: the
     // other robot's position is a landmark whose covariance is its pose covariance's
@@ -183,7 +181,7 @@ pub(super) fn sighting_update(
 /// One sighting `z` of robot `other` (its pose Gaussian in the particle of index `particle`) as an EKF update
 /// of the pose Gaussian `N(mu, pc)` of the robot that saw it: the sighting's log-likelihood,
 /// marginal over both Gaussians ([`sighting_marginal`]), and the updated mean and
-/// (symmetrised) covariance. `None` for a degenerate geometry.
+/// covariance. `None` for a degenerate geometry.
 pub(super) fn sighting_step(
     ctx: &StepCtx<'_>,
     particle: usize,
@@ -194,11 +192,11 @@ pub(super) fn sighting_step(
     pc: &Matrix3<f64>,
 ) -> Option<(f64, Pose2, Matrix3<f64>)> {
     let (ll, hx, s_inv, nu) = sighting_marginal(ctx, particle, other, mu, pc, qs, z)?;
-    let k = mul(&mul_t(pc, &hx), &s_inv);
+    let pht = mul_t(pc, &hx);
+    let k = mul(&pht, &s_inv);
     let d = mul(&k, &nu);
     let next = Pose2::new(mu.x + d[0], mu.y + d[1], wrap_angle(mu.theta + d[2]));
-    let next_pc = mul(&(Matrix3::identity() - mul(&k, &hx)), pc);
-    Some((ll, next, 0.5 * (next_pc + next_pc.transpose())))
+    Some((ll, next, kalman_posterior_cov(pc, &k, &pht)))
 }
 
 /// A sample of the motion model (FastSLAM 1.0's proposal).

@@ -20,9 +20,9 @@
 //! checks that the server's trajectories and landmarks equal the offline run's bit for bit;
 //! then the median ratio. It also prints the CPU time this process used on each side, and
 //! the server's by thread name: the filter's workers (`rayon-N`, rayon's shared pool,
-//! named here), the async runtime's (`tokio-rt-worker`: the clients, the listener, the
-//! handlers, and the coordinator's blocking thread, where each step's serial parts run)
-//! and SQLite's.
+//! named here), the server's async runtime's (`tokio-rt-worker`: the handlers, and the
+//! coordinator's blocking thread, where each step's serial parts run), SQLite's, and the
+//! clients' and listener's own runtime's (`clients-rt`).
 //!
 //! With `RUNS` above 1 (default 1), that many runs of the log are posted to one server at
 //! the same time, each by its own clients and with its own listener: each run's wall time
@@ -107,6 +107,7 @@ async fn create_run(
     addr: std::net::SocketAddr,
     log: &Log,
     particles: usize,
+    clients: &tokio::runtime::Handle,
 ) -> Posting {
     let base = format!("http://{addr}");
     let v = post(
@@ -129,10 +130,12 @@ async fn create_run(
         .await;
         tokens.push((r.id.clone(), v["token"].as_str().unwrap().to_string()));
     }
-    let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/v1/runs/{run}/live"))
-        .await
-        .unwrap();
-    let listener = tokio::spawn(async move {
+    // Connected and read on the clients' runtime; posting starts once it is connected.
+    let (connected, is_connected) = tokio::sync::oneshot::channel();
+    let url = format!("ws://{addr}/v1/runs/{run}/live");
+    let listener = clients.spawn(async move {
+        let (mut ws, _) = tokio_tungstenite::connect_async(url).await.unwrap();
+        connected.send(()).unwrap();
         let mut heard = Heard::default();
         let mut last = None;
         while let Some(Ok(msg)) = ws.next().await {
@@ -171,6 +174,7 @@ async fn create_run(
         }
         heard
     });
+    is_connected.await.unwrap();
     Posting {
         run,
         tokens,
@@ -250,6 +254,7 @@ async fn server_round(
     particles: usize,
     batch: usize,
     runs: usize,
+    clients: &tokio::runtime::Handle,
 ) -> (Vec<Round>, std::collections::BTreeMap<u64, (String, f64)>) {
     let dir = tempfile::tempdir().unwrap();
     let running = fleetslam_server::server::start(&ServerConfig {
@@ -263,13 +268,13 @@ async fn server_round(
     let c = reqwest::Client::new();
     let mut postings = Vec::new();
     for _ in 0..runs {
-        postings.push(create_run(&c, running.addr, log, particles).await);
+        postings.push(create_run(&c, running.addr, log, particles, clients).await);
     }
     let started = Instant::now();
     let posters: Vec<_> = postings
         .iter()
         .map(|p| {
-            tokio::spawn(post_run(
+            clients.spawn(post_run(
                 c.clone(),
                 base.clone(),
                 log.clone(),
@@ -469,6 +474,16 @@ fn main() {
         .build_global()
         .unwrap();
     let rt = tokio::runtime::Runtime::new().unwrap();
+    // The robots' clients and the websocket listener run on a runtime of their own, so that
+    // the CPU time by thread tells the server's (`tokio-rt-worker`) from theirs
+    // (`clients-rt`): on a deployment they run on the robots and the dashboard's machine.
+    // Both runtimes share this machine's cores, as before.
+    let clients = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .thread_name("clients-rt")
+        .enable_all()
+        .build()
+        .unwrap();
     let mut ratios = Vec::new();
     for round in 1..=rounds {
         let cpu0 = process_cpu_s();
@@ -476,7 +491,8 @@ fn main() {
         let cpu1 = process_cpu_s();
         let threads1 = thread_cpu_s();
         let started = Instant::now();
-        let (rs, threads2) = rt.block_on(server_round(&log, particles, batch, runs));
+        let (rs, threads2) =
+            rt.block_on(server_round(&log, particles, batch, runs, clients.handle()));
         let all_s = started.elapsed().as_secs_f64();
         let cpu2 = process_cpu_s();
         // CPU time against wall time: how much of the cores each side kept busy (the

@@ -443,6 +443,27 @@ impl LandmarkMap {
         self.reindex(slot, old.as_ref(), Some(&lm));
     }
 
+    /// Rewrites the landmark in `slot` as `f` makes it from the landmark there and its
+    /// current existence log-odds ([`LandmarkMap::current_existence`]): `get` and `set` in one
+    /// walk down the trie, for an update that reads the landmark it replaces. The slot must
+    /// hold a landmark (the caller read it in the same step); an empty one is left empty,
+    /// though the walk has then copied its path's shared nodes.
+    pub fn update(&mut self, slot: usize, f: impl FnOnce(&Landmark, f64) -> Landmark) {
+        debug_assert!(self.get(slot).is_some(), "slot {slot} holds no landmark");
+        if slot >= self.slots {
+            return;
+        }
+        let held = self.pending_at(slot).ok().map(|i| self.pending()[i].1);
+        let cell = self.cell_mut(slot);
+        let Some(old) = *cell else {
+            return;
+        };
+        let new = f(&old, held.unwrap_or(old.existence));
+        *cell = Some(new);
+        self.forget_pending(slot);
+        self.reindex(slot, Some(&old), Some(&new));
+    }
+
     /// Removes the landmark in `slot`, leaving the slot empty.
     pub fn remove(&mut self, slot: usize) {
         if self.get(slot).is_some() {

@@ -378,19 +378,12 @@ fn update_landmarks(
             if !out.posterior.is_finite() {
                 continue;
             }
-            let Some(old) = p.map.get(s).copied() else {
-                continue;
-            };
-            p.map.set(
-                s,
-                Landmark {
-                    gaussian: out.posterior,
-                    existence: (p.map.current_existence(s, &old) + a.existence_hit)
-                        .min(a.existence_max),
-                    hits: old.hits + 1,
-                    ..old
-                },
-            );
+            p.map.update(s, |old, existence| Landmark {
+                gaussian: out.posterior,
+                existence: (existence + a.existence_hit).min(a.existence_max),
+                hits: old.hits + 1,
+                ..*old
+            });
             if let Some(o) = &mut observed {
                 o[i].push(s);
             }

@@ -173,9 +173,9 @@ pub fn range_bearing_predict(
 /// `atan2(y, x)` as the filter's predictions take it: the `libm` crate's (FreeBSD's
 /// msun, error below one ulp), not the platform's C library's. It is the prediction's
 /// largest single cost: glibc's `atan2` took about 147 instructions a call, 15 % of the
-/// simulated speed log's filter instructions (two calls per particle and observation: 2.0's
-/// proposal and the landmark update), `libm`'s takes about 104 (callgrind, README, session
-/// 24). And it gives the same bits on every platform, whatever its C library.
+/// filter's instructions on the simulated speed log (two calls per particle and observation:
+/// 2.0's proposal and the landmark update), `libm`'s takes about 104 (callgrind, README,
+/// session 24). And it gives the same bits on every platform, whatever its C library.
 #[inline]
 pub fn bearing_atan2(y: f64, x: f64) -> f64 {
     libm::atan2(y, x)

@@ -11,16 +11,16 @@
 //!
 //! In that frame the innovation covariance is `S = Σ + Q`, the gain `K = Σ S⁻¹`, the
 //! correction `K ν` and the posterior covariance `Σ − K Σ` — exactly the EKF's update
-//! (its Joseph form equals this in exact arithmetic). The innovation likelihood the particle
-//! weight needs is `ln N(ν; 0, S)` (for range-bearing corrected by `ln r`, the Jacobian of the
-//! bearing scaling), again exactly the EKF's.
+//! (which computes the same posterior as `Σ − K (Σ Hᵀ)ᵀ` in the world frame). The innovation
+//! likelihood the particle weight needs is `ln N(ν; 0, S)` (for range-bearing corrected by
+//! `ln r`, the Jacobian of the bearing scaling), again exactly the EKF's.
 //!
 //! The learned updater computes that likelihood in closed form (it is the particle weight:
 //! FastSLAM stays a proper particle filter whatever the network predicts), and lets the
 //! network predict the landmark's posterior.
 
 use fleetslam_core::pose::wrap_angle;
-use fleetslam_core::sensor::{LandmarkKind, SensorNoise};
+use fleetslam_core::sensor::{LandmarkKind, SensorNoise, bearing_atan2};
 use fleetslam_core::updater::{LandmarkGaussian, UpdateInput};
 use nalgebra::{SMatrix, SVector};
 use serde::{Deserialize, Serialize};
@@ -161,7 +161,7 @@ pub(crate) fn frame2(inp: &UpdateInput, noise: &SensorNoise) -> Option<Frame<2>>
     let (c, s) = (dx / r, dy / r);
     let t = SMatrix::<f64, 2, 2>::new(c, s, -s, c);
     let sigma = t * cov2(&inp.prior.cov) * t.transpose();
-    let bearing = wrap_angle(dy.atan2(dx) - inp.pose.theta);
+    let bearing = wrap_angle(bearing_atan2(dy, dx) - inp.pose.theta);
     let nu = SVector::<f64, 2>::new(inp.z[0] - r, r * wrap_angle(inp.z[1] - bearing));
     Some(Frame {
         t,

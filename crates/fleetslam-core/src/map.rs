@@ -888,6 +888,63 @@ mod tests {
         assert_eq!(b.get(500).unwrap().gaussian.mean[0], 500.0);
     }
 
+    /// `update` is `get` then `set`: it reads the held existence value where there is one
+    /// (and drops it), keeps the index in step when the landmark moves, and copies only the
+    /// updated path of a map shared with a copy.
+    #[test]
+    fn update_is_get_then_set() {
+        let mut a = LandmarkMap::new();
+        for i in 0..200 {
+            a.push(at(i as f64, 0.0, 0.1));
+        }
+        a.set_existence(5, 0.25);
+        let shared = a.clone();
+        let mut b = a.clone();
+        let step = |old: &Landmark, existence: f64| Landmark {
+            gaussian: LandmarkGaussian {
+                mean: [old.gaussian.mean[0] + 50.0, 3.0, 0.0],
+                ..old.gaussian
+            },
+            existence: existence + 1.0,
+            hits: old.hits + 1,
+            ..*old
+        };
+        for slot in [5, 6, 150] {
+            let old = *a.get(slot).unwrap();
+            let existence = a.current_existence(slot, &old);
+            a.update(slot, step);
+            b.set(slot, step(&old, existence));
+        }
+        assert_eq!(a, b);
+        assert_eq!(
+            a.existence(5),
+            Some(1.25),
+            "the held value, not the trie's 1.0"
+        );
+        assert_eq!(a.existence(6), Some(2.0));
+        assert!(a.pending().is_empty());
+        let near = |m: &LandmarkMap, x: f64, y: f64| {
+            let mut found = Vec::new();
+            m.for_each_near(x, y, 0.5, |s, l| {
+                if (l.gaussian.mean[0] - x).hypot(l.gaussian.mean[1] - y) < 0.5 {
+                    found.push(s);
+                }
+            });
+            found
+        };
+        assert_eq!(near(&a, 55.0, 3.0), vec![5]);
+        assert!(near(&a, 5.0, 0.0).is_empty(), "moved out of its old cell");
+        assert_eq!(shared.get(5).unwrap().gaussian.mean[0], 5.0);
+        assert_eq!(shared.existence(5), Some(0.25));
+        let leaf_of = |m: &LandmarkMap, slot: usize| m.get(slot).unwrap() as *const Landmark;
+        assert_eq!(
+            leaf_of(&shared, 100),
+            leaf_of(&a, 100),
+            "untouched leaves stay shared"
+        );
+        assert_ne!(leaf_of(&shared, 150), leaf_of(&a, 150));
+    }
+
     /// Existence values held apart read back, survive copies, serialisation and equality as
     /// if written, and are written into the trie beyond the bound.
     #[test]

@@ -29,6 +29,11 @@
 //! and longest gap between states show how the runs share the machine, and the ratio is the
 //! time until the last run ended against `RUNS` offline runs one after another.
 
+/// The `fleetslam` binary's allocator (crates/fleetslam-cli/src/main.rs), so that both sides
+/// are measured as that binary runs them.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 use fleetslam_core::config::FilterConfig;
 use fleetslam_core::filter::FastSlam;
 use fleetslam_core::log::{Log, Record};

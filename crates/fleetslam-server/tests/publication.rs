@@ -251,6 +251,19 @@ async fn snapshots_taken_while_released_records_wait_for_the_filter_cover_only_a
             .unwrap()
             .unwrap();
         let snap = history::RunSnapshot::decode(&row.data).unwrap();
+        // Stored as CBOR; a snapshot stored as JSON (before session 24) reads back the same.
+        assert_ne!(row.data.first(), Some(&b'{'), "a CBOR snapshot");
+        let json = serde_json::to_vec(&snap).unwrap();
+        let from_json = history::RunSnapshot::decode(&json).unwrap();
+        assert_eq!(
+            serde_json::to_value(&from_json).unwrap(),
+            serde_json::to_value(&snap).unwrap()
+        );
+        assert_eq!(
+            from_json.encode().unwrap(),
+            row.data,
+            "the same bytes again"
+        );
         let covered = match snap.last_key() {
             None => 0,
             Some(last) => log

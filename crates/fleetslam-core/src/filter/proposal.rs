@@ -49,7 +49,9 @@ pub(super) fn sighting_marginal(
 /// each observation's mixture likelihood (its proposal marginal for the matched ones), or
 /// `None` when the proposal is degenerate (non-finite, or a covariance without a Cholesky
 /// factor): the caller then falls back to 1.0's proposal for this particle. Matched
-/// observations whose prediction fails, or beyond the `outlier` bound, become `Outlier`.
+/// observations whose prediction fails, or beyond the `outlier` bound, become `Outlier`;
+/// with known ids (`acts` holds `Update` for every observation with an id) an id the map
+/// does not hold becomes `New`.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
     ctx: &StepCtx<'_>,
@@ -79,8 +81,10 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
             }
         };
         let pose = Pose2::new(mu[0], mu[1], mu[2]);
+        // With known ids the association leaves the lookup to this loop: an id the map does
+        // not hold yet starts a landmark (weighed as clutter, as `New` is above).
         let Some(lm) = map.get(landmark) else {
-            acts[j] = Action::Outlier;
+            acts[j] = Action::New(Some(landmark));
             dw += o.clutter;
             continue;
         };

@@ -222,7 +222,16 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
         let bll = &mut best_ll[i * nobs..(i + 1) * nobs];
         c.pose_covs[i] = [0.0; 6];
         if v2 && nobs > 0 {
-            associate_record::<D, M>(ctx, &q, &p.map, &mean0, &pc0, acts, bll);
+            if cfg.association == Association::Known {
+                // The proposal reads each observed landmark itself and takes an id its map
+                // does not hold yet as new: one lookup per observation, not two.
+                for (a, o) in acts.iter_mut().zip(ctx.obs) {
+                    *a = o.slot.map_or(Action::Ignore, Action::Update);
+                }
+                bll.fill(f64::NEG_INFINITY);
+            } else {
+                associate_record::<D, M>(ctx, &q, &p.map, &mean0, &pc0, acts, bll);
+            }
             if let Some((pose, dw)) =
                 propose::<D, M>(ctx, &q, &p.map, particle, &mean0, &pc0, acts, bll, rng)
             {

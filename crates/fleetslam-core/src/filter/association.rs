@@ -92,12 +92,11 @@ pub(super) fn associate_record<const D: usize, M: MeasurementModel<D>>(
     let cfg = ctx.cfg;
     best_ll.fill(f64::NEG_INFINITY);
     if cfg.association == Association::Known {
-        for (j, o) in ctx.obs.iter().enumerate() {
-            acts[j] = match o.slot {
-                Some(s) if map.get(s).is_some() => Action::Update(s),
-                Some(s) => Action::New(Some(s)),
-                None => Action::Ignore,
-            };
+        // Every id is an `Update` of its slot, not looked up here: the proposal (2.0) and the
+        // landmark update (1.0) read the landmark anyway, and take an id their map does not
+        // hold yet as new.
+        for (a, o) in acts.iter_mut().zip(ctx.obs) {
+            *a = o.slot.map_or(Action::Ignore, Action::Update);
         }
         return;
     }

@@ -222,16 +222,7 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
         let bll = &mut best_ll[i * nobs..(i + 1) * nobs];
         c.pose_covs[i] = [0.0; 6];
         if v2 && nobs > 0 {
-            if cfg.association == Association::Known {
-                // The proposal reads each observed landmark itself and takes an id its map
-                // does not hold yet as new: one lookup per observation, not two.
-                for (a, o) in acts.iter_mut().zip(ctx.obs) {
-                    *a = o.slot.map_or(Action::Ignore, Action::Update);
-                }
-                bll.fill(f64::NEG_INFINITY);
-            } else {
-                associate_record::<D, M>(ctx, &q, &p.map, &mean0, &pc0, acts, bll);
-            }
+            associate_record::<D, M>(ctx, &q, &p.map, &mean0, &pc0, acts, bll);
             if let Some((pose, dw)) =
                 propose::<D, M>(ctx, &q, &p.map, particle, &mean0, &pc0, acts, bll, rng)
             {
@@ -289,6 +280,15 @@ fn update_landmarks(
             let mut action = d.action(i, j);
             let v1 = d.weigh_in_update[i];
             let mut weigh = v1;
+            // A known id the map does not hold yet is new (the association gives every id
+            // `Update` without looking it up; 2.0's proposal already made these `New`).
+            let prior = match action {
+                Action::Update(s) => p.map.get(s).map(|lm| lm.gaussian),
+                _ => None,
+            };
+            if let (Action::Update(s), None) = (action, prior) {
+                action = Action::New(Some(s));
+            }
             // A known id seen twice in one record: the second sighting updates the landmark
             // the first one created.
             if let Action::New(Some(s)) = action
@@ -303,9 +303,9 @@ fn update_landmarks(
             }
             match action {
                 Action::Update(s) => {
-                    if let Some(lm) = p.map.get(s) {
+                    if let Some(prior) = prior {
                         inputs.push(UpdateInput {
-                            prior: lm.gaussian,
+                            prior,
                             pose,
                             z: o.z,
                         });

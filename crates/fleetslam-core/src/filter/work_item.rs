@@ -283,7 +283,7 @@ fn update_landmarks(
             // A known id the map does not hold yet is new (the association gives every id
             // `Update` without looking it up; 2.0's proposal already made these `New`).
             let prior = match action {
-                Action::Update(s) => p.map.get(s).map(|lm| lm.gaussian),
+                Action::Update(s) => p.map.get(s).map(|lm| &lm.gaussian),
                 _ => None,
             };
             if let (Action::Update(s), None) = (action, prior) {
@@ -303,7 +303,7 @@ fn update_landmarks(
             }
             match action {
                 Action::Update(s) => {
-                    if let Some(prior) = prior {
+                    if let Some(&prior) = prior {
                         inputs.push(UpdateInput {
                             prior,
                             pose,

@@ -13,7 +13,9 @@
 //! The source is a UTIAS MRCLAM data set's directory, imported as `fleetslam import mrclam`
 //! does (its first `DURATION_S` seconds; all of it when omitted or `all`), or a log file
 //! (`log.ndjson`). `PARTICLES` defaults to 1,000 and `ROUNDS` to 3; seed 1, [`BATCH`]
-//! records per request.
+//! records per request. The server takes its defaults under the `FLEETSLAM_<FIELD>`
+//! variables, as `fleetslam serve` does (e.g. `FLEETSLAM_SNAPSHOT_EVERY=2000
+//! FLEETSLAM_SNAPSHOT_EVERY_WORK_MS=1000000` for snapshots by the record count alone).
 //! Per round it prints the offline wall time, the server's wall time (from the first post
 //! until the run's end is answered: every record stored, applied and the run's result
 //! stored) and their ratio, the longest wait between two states the listener received, and
@@ -262,13 +264,15 @@ async fn server_round(
     clients: &tokio::runtime::Handle,
 ) -> (Vec<Round>, std::collections::BTreeMap<u64, (String, f64)>) {
     let dir = tempfile::tempdir().unwrap();
-    let running = fleetslam_server::server::start(&ServerConfig {
-        bind: "127.0.0.1:0".into(),
-        data_dir: dir.path().to_path_buf(),
-        ..ServerConfig::default()
-    })
-    .await
+    // The defaults under the server's own `FLEETSLAM_<FIELD>` variables (e.g.
+    // `FLEETSLAM_SNAPSHOT_EVERY`), as `fleetslam serve` reads them.
+    let config = ServerConfig::load(
+        None,
+        json!({ "bind": "127.0.0.1:0", "data_dir": dir.path() }),
+    )
     .unwrap();
+    config.validate().unwrap();
+    let running = fleetslam_server::server::start(&config).await.unwrap();
     let base = format!("http://{}", running.addr);
     let c = reqwest::Client::new();
     let mut postings = Vec::new();

@@ -50,10 +50,15 @@ pub struct ServerConfig {
     pub state_rate_hz: f64,
     /// Particles per robot in the published state. Default 100.
     pub particle_sample: usize,
-    /// Records applied between two stored snapshots. Default 2000. Recovery after a crash
-    /// and scrubbing replay at most this many records; each snapshot costs a serialization
-    /// of every particle.
+    /// Records applied between two stored snapshots at most. Default 20,000. Recovery after
+    /// a crash and scrubbing replay at most this many records; each snapshot costs a
+    /// serialization of every particle.
     pub snapshot_every: u64,
+    /// The filter's stepping time [ms] (its steps' own time, not the wall clock's) after
+    /// which a snapshot falls due, when that comes before `snapshot_every` records. Default
+    /// 500: a recovery or a scrub replays about this much filter work at most, and snapshots
+    /// take a bounded share of the filter's time.
+    pub snapshot_every_work_ms: u64,
     /// Directory of the dashboard's files, served at `/`. Default: the `web/` directory of
     /// the source tree the server was built from.
     pub web_dir: Option<PathBuf>,
@@ -142,7 +147,9 @@ impl Default for ServerConfig {
             reorder_window_ms: 2000,
             state_rate_hz: 10.0,
             particle_sample: 100,
-            snapshot_every: 2000,
+            snapshot_every: crate::coordinator::DEFAULT_SNAPSHOT_EVERY,
+            snapshot_every_work_ms: crate::coordinator::DEFAULT_SNAPSHOT_EVERY_WORK.as_millis()
+                as u64,
             web_dir: None,
             max_future_s: Limits::default().max_future_s,
             max_motion_s: Limits::default().max_motion_s,
@@ -278,6 +285,9 @@ impl ServerConfig {
         if self.snapshot_every == 0 {
             return Err("snapshot_every must be at least 1".into());
         }
+        if self.snapshot_every_work_ms == 0 {
+            return Err("snapshot_every_work_ms must be at least 1".into());
+        }
         if self.ws_max_per_run == 0 || self.ws_max_total == 0 {
             return Err("ws_max_per_run and ws_max_total must be at least 1".into());
         }
@@ -410,6 +420,7 @@ impl ServerConfig {
                 state_rate_hz: self.state_rate_hz,
                 particle_sample: self.particle_sample,
                 snapshot_every: self.snapshot_every,
+                snapshot_every_work: Duration::from_millis(self.snapshot_every_work_ms),
                 max_future_s: self.max_future_s,
                 ws_max_per_run: self.ws_max_per_run,
                 ws_max_total: self.ws_max_total,

@@ -52,9 +52,15 @@ pub struct CoordinatorConfig {
     pub state_rate_hz: f64,
     /// Particles per robot in the published state.
     pub particle_sample: usize,
-    /// Records applied between two stored snapshots (recovery replays at most this many;
-    /// scrubbing through a finished run replays at most this many per position).
+    /// Records applied between two stored snapshots at most (recovery replays at most this
+    /// many; scrubbing through a finished run replays at most this many per position).
     pub snapshot_every: u64,
+    /// The filter's own stepping time (the steps' time, not the wall clock's) after which a
+    /// snapshot falls due, when that comes before `snapshot_every` records: a recovery or a
+    /// scrub then replays about this much filter work at most, and snapshots, whose cost
+    /// grows with the particles as a step's does, take a bounded share of the filter's time
+    /// however many records a step takes. Default [`DEFAULT_SNAPSHOT_EVERY_WORK`].
+    pub snapshot_every_work: Duration,
     /// How far a record's time may lie ahead of the run's clock [s] (see
     /// [`Coordinator::clock`]).
     pub max_future_s: f64,
@@ -79,7 +85,8 @@ impl Default for CoordinatorConfig {
             reorder_window: Duration::from_secs(2),
             state_rate_hz: 10.0,
             particle_sample: 100,
-            snapshot_every: 2000,
+            snapshot_every: DEFAULT_SNAPSHOT_EVERY,
+            snapshot_every_work: DEFAULT_SNAPSHOT_EVERY_WORK,
             max_future_s: crate::limits::Limits::default().max_future_s,
             ws_max_per_run: crate::ws_limit::DEFAULT_WS_MAX_PER_RUN,
             ws_max_total: crate::ws_limit::DEFAULT_WS_MAX_TOTAL,
@@ -515,6 +522,7 @@ pub fn spawn(
         first_t: None,
         applied: 0,
         last_snapshot: 0,
+        work_since_snapshot: Duration::ZERO,
         base: Arc::new(filter.clone()),
         since: Vec::new(),
         failed: None,
@@ -658,6 +666,9 @@ struct Coordinator {
     applied: u64,
     /// `applied` at the last snapshot.
     last_snapshot: u64,
+    /// The filter's stepping time since the last snapshot (see
+    /// [`CoordinatorConfig::snapshot_every_work`]).
+    work_since_snapshot: Duration,
     /// The filter as of the last snapshot (or the start), and the records applied since:
     /// what the filter is rebuilt from after a poison record, as a restart would.
     base: Arc<LateJoinSlam>,
@@ -725,6 +736,12 @@ const MAX_DRAIN: usize = 64;
 
 /// Default of [`CoordinatorConfig::max_backlog`].
 pub const DEFAULT_MAX_BACKLOG: usize = 2048;
+
+/// Default of [`CoordinatorConfig::snapshot_every`].
+pub const DEFAULT_SNAPSHOT_EVERY: u64 = 20_000;
+
+/// Default of [`CoordinatorConfig::snapshot_every_work`].
+pub const DEFAULT_SNAPSHOT_EVERY_WORK: Duration = Duration::from_millis(500);
 
 impl Coordinator {
     async fn run(mut self, mut rx: mpsc::Receiver<Command>) {
@@ -863,11 +880,14 @@ impl Coordinator {
     }
 
     /// Queues a snapshot when `snapshot_every` records have been applied since the last
-    /// one (the filter must be home).
+    /// one, or the filter has stepped for `snapshot_every_work` through at least one record
+    /// since (the filter must be home).
     fn snapshot_if_due(&mut self) {
         if self.filter.is_some()
             && self.failed.is_none()
-            && self.applied >= self.last_snapshot + self.cfg.snapshot_every.max(1)
+            && (self.applied >= self.last_snapshot + self.cfg.snapshot_every.max(1)
+                || (self.applied > self.last_snapshot
+                    && self.work_since_snapshot >= self.cfg.snapshot_every_work))
         {
             self.snapshot(None);
         }
@@ -900,6 +920,7 @@ impl Coordinator {
         let points = self.trajectories.since(&self.traj_sent);
         let from = std::mem::replace(&mut self.traj_sent, self.trajectories.lens());
         self.last_snapshot = self.applied;
+        self.work_since_snapshot = Duration::ZERO;
         self.base = Arc::new(filter.clone());
         self.since.clear();
         let job = SnapshotJob {
@@ -1309,10 +1330,15 @@ impl Coordinator {
         self.handed = records.len();
         // The thread comes back after about one publication interval, so that states go
         // out while a backlog is worked off, and when a snapshot is due, so that snapshots
-        // fall every `snapshot_every` records however fast the filter runs.
+        // fall every `snapshot_every` records or `snapshot_every_work` of stepping however
+        // fast the filter runs.
         let budget = self.min_gap();
         let due =
             (self.last_snapshot + self.cfg.snapshot_every.max(1)).saturating_sub(self.applied);
+        let due_work = self
+            .cfg
+            .snapshot_every_work
+            .saturating_sub(self.work_since_snapshot);
         let mut trajectories = std::mem::take(&mut self.trajectories);
         let base = self.base.clone();
         let mut since = std::mem::take(&mut self.since);
@@ -1320,6 +1346,7 @@ impl Coordinator {
         self.stepping = Some(tokio::task::spawn_blocking(move || {
             let mut out = Applied::default();
             let started = Instant::now();
+            let mut work = Duration::ZERO;
             // The batch runs on a worker of rayon's pool, as `run_log` steps: each step's
             // parallel parts (its work items, the weights' exps, the resample) are then
             // joins inside the pool, where from this blocking thread each was a job sent to
@@ -1328,7 +1355,9 @@ impl Coordinator {
             rayon::scope(|_| {
                 while let Some(r) = records.pop_front() {
                     if !out.reports.is_empty()
-                        && (started.elapsed() >= budget || out.reports.len() as u64 >= due)
+                        && (started.elapsed() >= budget
+                            || out.reports.len() as u64 >= due
+                            || work >= due_work)
                     {
                         records.push_front(r);
                         break;
@@ -1337,7 +1366,9 @@ impl Coordinator {
                     out.last = Some(OrderKey::of(&r));
                     match poison::try_step(&mut filter, &r) {
                         Ok(rep) => {
-                            let ns = t0.elapsed().as_nanos() as u64;
+                            let took = t0.elapsed();
+                            work += took;
+                            let ns = took.as_nanos() as u64;
                             if rep.joined {
                                 out.joins.push(r.robot.clone());
                             }
@@ -1415,6 +1446,7 @@ impl Coordinator {
         }
         for (rep, ns) in out.reports {
             self.applied += 1;
+            self.work_since_snapshot += Duration::from_nanos(ns);
             self.step_ns.push(ns);
             self.all_step_ns.push(ns);
             let Some(rep) = rep else { continue };

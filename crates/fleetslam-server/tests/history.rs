@@ -15,9 +15,11 @@ mod common;
 use axum::http::StatusCode;
 use common::{Harness, harness, setup, sim_log};
 
+/// Snapshots every `snapshot_every` records, the filter's work never bringing one sooner.
 fn config(snapshot_every: u64) -> ApiConfig {
     let mut c = ApiConfig::default();
     c.coordinator.snapshot_every = snapshot_every;
+    c.coordinator.snapshot_every_work = std::time::Duration::MAX;
     c
 }
 
@@ -109,8 +111,33 @@ fn trajectories_of(out: &fleetslam_data::run::RunOutput) -> Value {
 /// snapshot every `snapshot_every` records while its end works the backlog off.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn ending_with_a_backlog_keeps_the_snapshot_spacing() {
+    let applied = end_with_a_backlog(config(40)).await;
+    let n = *applied.last().unwrap();
+    let mut expected: Vec<u64> = (1..=n / 40).map(|k| 40 * k).collect();
+    if !n.is_multiple_of(40) {
+        expected.push(n);
+    }
+    assert!(n > 120, "{n} records");
+    assert_eq!(applied, expected);
+}
+
+/// A snapshot falls due once the filter has stepped for `snapshot_every_work`, before
+/// `snapshot_every` records: with 1 ns, after every record (each step takes longer), the
+/// thread stepping the backlog coming back for it after each.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_filter_work_brings_a_snapshot_due() {
+    let mut cfg = config(1_000_000);
+    cfg.coordinator.snapshot_every_work = std::time::Duration::from_nanos(1);
+    let applied = end_with_a_backlog(cfg).await;
+    let n = *applied.last().unwrap();
+    assert!(n > 120, "{n} records");
+    assert_eq!(applied, (1..=n).collect::<Vec<_>>());
+}
+
+/// Posts a simulated run's records but one robot's (so the merger holds them all), ends the
+/// run and returns the `applied` count of each of its stored snapshots.
+async fn end_with_a_backlog(mut cfg: ApiConfig) -> Vec<u64> {
     let log = sim_log(3, 21.0);
-    let mut cfg = config(40);
     cfg.coordinator.reorder_window = std::time::Duration::from_secs(600);
     let h = harness(cfg).await;
     let (run, tokens) = setup(&h, &log, json!({"particles": 20, "seed": 3})).await;
@@ -135,13 +162,8 @@ async fn ending_with_a_backlog_keeps_the_snapshot_spacing() {
         .iter()
         .map(|s| s["applied"].as_u64().unwrap())
         .collect();
-    let n = posted.len() as u64;
-    let mut expected: Vec<u64> = (1..=n / 40).map(|k| 40 * k).collect();
-    if !n.is_multiple_of(40) {
-        expected.push(n);
-    }
-    assert!(n > 120, "{n} records");
-    assert_eq!(applied, expected, "{tl}");
+    assert_eq!(applied.last(), Some(&(posted.len() as u64)), "{tl}");
+    applied
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -11,7 +11,7 @@ use crate::motion::scale_increment;
 use crate::pose::{Pose2, wrap_angle};
 use crate::rng::{LANE_CALIBRATION, Stream, stream};
 use crate::sensor::{MeasurementModel, RangeBearingModel};
-use crate::stats::{gaussian_log_density, log_add_exp};
+use crate::stats::{gaussian_log_add_exp, gaussian_log_density, log_add_exp};
 use nalgebra::{Matrix2, Matrix2x3, Matrix3, SMatrix, Vector2, Vector3};
 use rand::Rng;
 use rand_distr::StandardNormal;
@@ -103,15 +103,7 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
         };
         let nu = M::innovation(&o.z, &zhat);
         let m2 = nu.dot(&mul(&s_inv, &nu));
-        let ll = gaussian_log_density(m2, det.ln(), D);
-        dw += log_add_exp(
-            if ll.is_finite() {
-                ll
-            } else {
-                f64::NEG_INFINITY
-            },
-            o.clutter,
-        );
+        dw += gaussian_log_add_exp(m2, det, D, o.clutter);
         if outlier.is_some_and(|b| m2.is_nan() || m2 > b) {
             acts[j] = Action::Outlier;
             continue;

@@ -98,6 +98,9 @@ struct Round {
     heard: Heard,
     /// Requests refused as busy (503) and retried.
     busy: u64,
+    /// Snapshots the run stored (at the robots' registrations, by `snapshot_every` records
+    /// or `snapshot_every_work_ms` of stepping, and at the end).
+    snapshots: usize,
 }
 
 /// A run created on the server, its robots' tokens and its listener.
@@ -329,6 +332,7 @@ async fn server_round(
         let steps_s = result["metrics"]["step_ms_mean"].as_f64().unwrap()
             * result["metrics"]["applied"].as_f64().unwrap()
             / 1e3;
+        let snapshots = running.store.snapshot_index(run).await.unwrap().len();
         rounds.push(Round {
             wall,
             steps_s,
@@ -336,6 +340,7 @@ async fn server_round(
             state,
             heard,
             busy,
+            snapshots,
         });
     }
     let threads = thread_cpu_s();
@@ -529,9 +534,9 @@ fn main() {
                 ratios.push(ratio);
             }
             println!(
-                "round {round}{}: offline {offline_s:.2} s, server {:.2} s (filter steps {:.2} s), \
-                 ratio {ratio:.3} (identical; listener: {} states, longest gap {:.0} ms, {} \
-                 events; {} requests retried after 503)",
+                "round {round}{}: offline {offline_s:.2} s, server {:.2} s (filter steps {:.2} s, \
+                 {} snapshots), ratio {ratio:.3} (identical; listener: {} states, longest gap \
+                 {:.0} ms, {} events; {} requests retried after 503)",
                 if runs > 1 {
                     format!(" run {}", k + 1)
                 } else {
@@ -539,6 +544,7 @@ fn main() {
                 },
                 r.wall,
                 r.steps_s,
+                r.snapshots,
                 r.heard.states,
                 r.heard.max_gap.as_secs_f64() * 1e3,
                 r.heard.events,

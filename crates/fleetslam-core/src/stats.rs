@@ -99,16 +99,22 @@ pub fn gaussian_log_add_exp(m2: f64, det: f64, dim: usize, other: f64) -> f64 {
         // `ln_1p`'s instructions (a good match has `x` far above 1).
         other + if x > 1.0 { (1.0 + x).ln() } else { x.ln_1p() }
     } else {
-        let ll = gaussian_log_density(m2, det.ln(), dim);
-        log_add_exp(
-            if ll.is_finite() {
-                ll
-            } else {
-                f64::NEG_INFINITY
-            },
-            other,
-        )
+        gaussian_log_add_exp_in_two_steps(m2, det, dim, other)
     }
+}
+
+/// What [`gaussian_log_add_exp`] computes, as the two steps: the Gaussian's log-density
+/// (`−∞` when not finite), then `log_add_exp`.
+fn gaussian_log_add_exp_in_two_steps(m2: f64, det: f64, dim: usize, other: f64) -> f64 {
+    let ll = gaussian_log_density(m2, det.ln(), dim);
+    log_add_exp(
+        if ll.is_finite() {
+            ll
+        } else {
+            f64::NEG_INFINITY
+        },
+        other,
+    )
 }
 
 #[cfg(test)]
@@ -122,17 +128,7 @@ mod tests {
     /// steps' value.
     #[test]
     fn the_folded_mixture_is_the_two_steps() {
-        let two_steps = |m2: f64, det: f64, dim: usize, other: f64| {
-            let ll = gaussian_log_density(m2, det.ln(), dim);
-            log_add_exp(
-                if ll.is_finite() {
-                    ll
-                } else {
-                    f64::NEG_INFINITY
-                },
-                other,
-            )
-        };
+        let two_steps = gaussian_log_add_exp_in_two_steps;
         let mut worst = 0.0f64;
         for dim in [2, 3] {
             for m2 in [0.0, 1e-6, 0.3, 2.0, 9.21, 30.0, 200.0, 1e3, 1e5] {

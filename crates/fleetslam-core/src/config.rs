@@ -295,16 +295,18 @@ pub struct FilterConfig {
     pub defer_pose_sampling: DeferSampling,
     /// FastSLAM 2.0: a record's sightings of other robots refine the proposal as its
     /// landmark observations do (the other robot's position as a landmark with its pose
-    /// covariance); otherwise they only weigh the sampled pose. Default false: on MRCLAM
-    /// Dataset 6 (first 300 s, no ids, 200 particles, seeds 1-4) it mapped 4-6 of the 6
-    /// landmark groups with team ATE 0.26-0.31 m, where weighing only mapped all 6 in every
-    /// seed with 0.26-0.27 m; with ids (full run, 500 particles, seeds 1-10) team ATE mean
-    /// 0.227 m (worst 0.280 m) against 0.215 m (0.240 m). Without ids on the full run
-    /// (1,000 particles, the header's 0.9 m landmark separation) it lowered team ATE (seeds
-    /// 1-20: mean 0.242 m, worst 0.278 m, against 0.265 m and 0.397 m) and mapped all 6
-    /// groups in 16 of 20 seeds, as off does. Records without landmark observations always
-    /// update the deferred Gaussian with their sightings.
-    pub sightings_in_proposal: bool,
+    /// covariance); otherwise they only weigh the sampled pose. Default `null`: on with
+    /// unknown association, off with known ids ([`FilterConfig::sightings_refine_proposal`]).
+    /// Without ids a sighting is the one observation whose association is certain (it
+    /// keeps its robot's id): on MRCLAM Dataset 6 without ids (1,000 particles, the header's
+    /// 0.9 m separation, session 25) it mapped all 6 landmark groups within 0.3 m in 28 of
+    /// seeds 1-30 (team ATE mean 0.244 m) against 17 (0.289 m) off, and left the clustered
+    /// and other simulations not tuned on about where they were (README). With ids the
+    /// landmarks already pin the poses and the sightings' linearisation costs accuracy:
+    /// team ATE mean 0.226 m (worst 0.286 m) on seeds 1-10 against 0.215 m (0.243 m) off.
+    /// Records without landmark observations always update the deferred Gaussian with their
+    /// sightings.
+    pub sightings_in_proposal: Option<bool>,
     /// Resample when the effective sample size falls below this fraction of N. Default 0.5.
     pub resample_threshold: f64,
     /// Seed of every random draw. Default 0.
@@ -339,7 +341,7 @@ impl Default for FilterConfig {
             association_params: AssociationParams::default(),
             sensor_range: None,
             defer_pose_sampling: DeferSampling::Auto,
-            sightings_in_proposal: false,
+            sightings_in_proposal: None,
             resample_threshold: 0.5,
             seed: 0,
             batch_size: 64,
@@ -419,6 +421,13 @@ impl FilterConfig {
     /// has been observed `confirm_hits` times (before that it is tentative); with ids always.
     pub fn is_confirmed(&self, lm: &crate::map::Landmark) -> bool {
         self.association == Association::Known || lm.hits >= self.association_params.confirm_hits
+    }
+
+    /// Whether FastSLAM 2.0's proposal takes a record's sightings of other robots:
+    /// `sightings_in_proposal` when set, otherwise with unknown association only.
+    pub fn sightings_refine_proposal(&self) -> bool {
+        self.sightings_in_proposal
+            .unwrap_or(self.association == Association::Unknown)
     }
 
     pub fn validate(&self) -> Result<(), ConfigError> {

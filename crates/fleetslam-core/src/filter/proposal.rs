@@ -113,10 +113,10 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
         mu[2] = wrap_angle(mu[2]);
         pc = kalman_posterior_cov(&pc, &k, &pht);
     }
-    // With `sightings_in_proposal`, sightings of other robots refine the proposal too: the
-    // other robot's position is a landmark whose covariance is its pose covariance's
-    // position block.
-    let sightings = if ctx.cfg.sightings_in_proposal {
+    // With `sightings_in_proposal` (by default with unknown association), sightings of
+    // other robots refine the proposal too: the other robot's position is a landmark whose
+    // covariance is its pose covariance's position block.
+    let sightings = if ctx.cfg.sightings_refine_proposal() {
         ctx.sightings
     } else {
         &[]

@@ -408,7 +408,7 @@ fn update_landmarks(
 fn weigh_sightings(ctx: &StepCtx<'_>, chunk: &mut Chunk<'_>, d: &Decisions) {
     let cfg = ctx.cfg;
     for (i, (p, pose)) in chunk.particles.iter_mut().zip(&*chunk.poses).enumerate() {
-        if !d.weigh_in_update[i] && cfg.sightings_in_proposal {
+        if !d.weigh_in_update[i] && cfg.sightings_refine_proposal() {
             continue;
         }
         for s in ctx.sightings {

@@ -131,6 +131,11 @@ fn snapshots_keep_the_maps_sharing_and_old_ones_still_restore() {
     assert_eq!(cfg.association, Association::Unknown);
     cfg.particles = 60;
     cfg.seed = 3;
+    // The sharing bound below was measured with the sightings weighing the sampled poses
+    // only (the default without ids since session 25 also refines 2.0's proposal with them,
+    // and there this run shares 1.18 times: 969 landmarks written for 1,140 held). Which
+    // particles survive resampling is a draw; the pool is what this test checks.
+    cfg.sightings_in_proposal = Some(false);
     let mut log = sim.log.clone();
     log.sort();
     let half = log.records.len() / 2;

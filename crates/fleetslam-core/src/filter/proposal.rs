@@ -11,7 +11,7 @@ use crate::motion::scale_increment;
 use crate::pose::{Pose2, wrap_angle};
 use crate::rng::{LANE_CALIBRATION, Stream, stream};
 use crate::sensor::{MeasurementModel, RangeBearingModel};
-use crate::stats::{gaussian_log_add_exp, gaussian_log_density, log_add_exp};
+use crate::stats::{MixtureLogSum, gaussian_log_density, log_add_exp};
 use nalgebra::{Matrix2, Matrix2x3, Matrix3, SMatrix, Vector2, Vector3};
 use rand::Rng;
 use rand_distr::StandardNormal;
@@ -68,6 +68,8 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
     let mut mu = Vector3::new(mean0.x, mean0.y, mean0.theta);
     let mut pc = *pc0;
     let mut dw = 0.0;
+    // The matched observations' mixture terms, with one logarithm for the record.
+    let mut matched = MixtureLogSum::default();
     for (j, o) in ctx.obs.iter().enumerate() {
         let landmark = match acts[j] {
             Action::Update(s) => s,
@@ -103,7 +105,7 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
         };
         let nu = M::innovation(&o.z, &zhat);
         let m2 = nu.dot(&mul(&s_inv, &nu));
-        dw += gaussian_log_add_exp(m2, det, D, o.clutter);
+        matched.add_gaussian(m2, det, D, o.clutter);
         if outlier.is_some_and(|b| m2.is_nan() || m2 > b) {
             acts[j] = Action::Outlier;
             continue;
@@ -136,6 +138,7 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
     if !(mu.iter().all(|v| v.is_finite()) && pc.iter().all(|v| v.is_finite())) {
         return None;
     }
+    dw += matched.value();
     // A zero covariance (no motion noise) is a point proposal, not a failure.
     let e = if pc.iter().all(|v| *v == 0.0) {
         Vector3::zeros()

@@ -89,7 +89,8 @@ pub fn log_add_exp(a: f64, b: f64) -> f64 {
 /// square root and one logarithm, where the two steps took two and an `exp`. Where
 /// `e^a / √det` is not finite (`ℓ` beyond `other` by more than the `f64` range, or a NaN)
 /// it computes the two steps. FastSLAM 2.0's proposal weighs every matched observation
-/// with it (the mixture of its marginal and the clutter density).
+/// with such a term (the mixture of its marginal and the clutter density), summed by
+/// [`MixtureLogSum`].
 pub fn gaussian_log_add_exp(m2: f64, det: f64, dim: usize, other: f64) -> f64 {
     let x = density_ratio(m2, det, dim, other);
     if x.is_finite() {

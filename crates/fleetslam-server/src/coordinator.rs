@@ -606,6 +606,8 @@ fn spawn_snapshot_writer(run: String, store: Store) -> mpsc::UnboundedSender<Sna
     let (tx, mut rx) = mpsc::unbounded_channel::<SnapshotJob>();
     tokio::spawn(async move {
         let mut unstored: Vec<fleetslam_store::TrajectoryChunk> = Vec::new();
+        // The last snapshot's size: the next one's buffer starts an eighth larger.
+        let mut last_len = 0usize;
         while let Some(job) = rx.recv().await {
             let SnapshotJob {
                 snap,
@@ -617,14 +619,16 @@ fn spawn_snapshot_writer(run: String, store: Store) -> mpsc::UnboundedSender<Sna
             let t = snap.filed_t();
             let res = async {
                 store.append_training(&run, &rows).await?;
+                let capacity = last_len + last_len / 8;
                 let (data, chunks) = tokio::task::spawn_blocking(move || {
                     Ok::<_, ApiError>((
-                        snap.encode()?,
+                        snap.encode_sized(capacity)?,
                         history::trajectory_chunks(&points.0, &points.1)?,
                     ))
                 })
                 .await
                 .map_err(ApiError::internal)??;
+                last_len = data.len();
                 unstored.extend(chunks);
                 store.put_trajectory_chunks(&run, &unstored).await?;
                 unstored.clear();

@@ -83,26 +83,6 @@ pub fn log_add_exp(a: f64, b: f64) -> f64 {
     hi + (lo - hi).exp().ln_1p()
 }
 
-/// `log_add_exp(ℓ, other)` for the Gaussian log-density `ℓ = gaussian_log_density(m2,
-/// det.ln(), dim)` (a non-finite `ℓ` taken as `−∞`), without the logarithm of `det`: as
-/// `other + ln(1 + e^a / √det)` with `a = −m2/2 − dim·ln(2π)/2 − other`: one `exp`, one
-/// square root and one logarithm, where the two steps took two and an `exp`. Where
-/// `e^a / √det` is not finite (`ℓ` beyond `other` by more than the `f64` range, or a NaN)
-/// it computes the two steps. FastSLAM 2.0's proposal weighs every matched observation
-/// with such a term (the mixture of its marginal and the clutter density), summed by
-/// [`MixtureLogSum`].
-pub fn gaussian_log_add_exp(m2: f64, det: f64, dim: usize, other: f64) -> f64 {
-    let x = density_ratio(m2, det, dim, other);
-    if x.is_finite() {
-        // `ln_1p` only where `1 + x` would round `x` away: above 1 the rounding costs at
-        // most half an ulp of `ln(1 + x)`, and glibc's `ln` takes about a third of its
-        // `ln_1p`'s instructions (a good match has `x` far above 1).
-        other + if x > 1.0 { (1.0 + x).ln() } else { x.ln_1p() }
-    } else {
-        gaussian_log_add_exp_in_two_steps(m2, det, dim, other)
-    }
-}
-
 /// `e^ℓ / e^other` for the Gaussian log-density `ℓ` of `(m2, det, dim)`, without the
 /// logarithm of `det`: `e^a / √det` with `a = −m2/2 − dim·ln(2π)/2 − other`.
 #[inline]
@@ -110,10 +90,15 @@ fn density_ratio(m2: f64, det: f64, dim: usize, other: f64) -> f64 {
     (-0.5 * m2 - 0.5 * dim as f64 * LN_2PI - other).exp() / det.sqrt()
 }
 
-/// A sum of [`gaussian_log_add_exp`] terms with one logarithm for the whole sum: each term
-/// `other + ln(1 + x)` adds `other` to a sum and multiplies `1 + x` into a product, whose
-/// logarithm [`MixtureLogSum::value`] adds once. FastSLAM 2.0's proposal weighs every matched
-/// observation of a record with such a term: one `ln` a particle and record instead of one a
+/// A sum of terms `log_add_exp(ℓ, other)`, each for a Gaussian log-density `ℓ =
+/// gaussian_log_density(m2, det.ln(), dim)` (a non-finite `ℓ` taken as `−∞`) against another
+/// log-density `other`, with one logarithm for the whole sum and none of `det`: a term is
+/// `other + ln(1 + x)` with `x = e^a / √det`, `a = −m2/2 − dim·ln(2π)/2 − other`; it adds
+/// `other` to a sum and multiplies `1 + x` into a product, whose logarithm
+/// [`MixtureLogSum::value`] adds once. Where `x` is not finite (`ℓ` beyond `other` by more
+/// than the `f64` range, or a NaN) the term is computed in the two steps. FastSLAM 2.0's
+/// proposal weighs every matched observation of a record with such a term (the mixture of
+/// its marginal and the clutter density): one `ln` a particle and record instead of one a
 /// particle and observation. The product stays finite: a factor or a product above
 /// [`MixtureLogSum::FLUSH`] is moved into the sum at once (`FLUSH²` is below `f64::MAX`).
 /// Its value differs from the sum of the terms by rounding (one rounding a factor; `1 + x`
@@ -137,7 +122,7 @@ impl MixtureLogSum {
     /// The largest product (and factor) kept out of the sum: 2⁵⁰⁰.
     pub const FLUSH: f64 = 3.273_390_607_896_142e150;
 
-    /// Adds `gaussian_log_add_exp(m2, det, dim, other)`.
+    /// Adds the term of `(m2, det, dim, other)`.
     #[inline]
     pub fn add_gaussian(&mut self, m2: f64, det: f64, dim: usize, other: f64) {
         let x = density_ratio(m2, det, dim, other);
@@ -165,7 +150,7 @@ impl MixtureLogSum {
     }
 }
 
-/// What [`gaussian_log_add_exp`] computes, as the two steps: the Gaussian's log-density
+/// A [`MixtureLogSum`] term as the two steps: the Gaussian's log-density
 /// (`−∞` when not finite), then `log_add_exp`.
 fn gaussian_log_add_exp_in_two_steps(m2: f64, det: f64, dim: usize, other: f64) -> f64 {
     let ll = gaussian_log_density(m2, det.ln(), dim);
@@ -183,52 +168,9 @@ fn gaussian_log_add_exp_in_two_steps(m2: f64, det: f64, dim: usize, other: f64) 
 mod tests {
     use super::*;
 
-    /// The folded mixture equals the two steps (the Gaussian's log-density, then
-    /// `log_add_exp`) to rounding (within 1e-14 of the larger of its size and 1; measured
-    /// 3.1e-15), over matches from perfect to hopeless, clutter densities far above and
-    /// below, and determinants across the sensors' range; non-finite inputs take the two
-    /// steps' value.
-    #[test]
-    fn the_folded_mixture_is_the_two_steps() {
-        let two_steps = gaussian_log_add_exp_in_two_steps;
-        let mut worst = 0.0f64;
-        for dim in [2, 3] {
-            for m2 in [0.0, 1e-6, 0.3, 2.0, 9.21, 30.0, 200.0, 1e3, 1e5] {
-                for det in [1e-30, 1e-12, 1e-6, 1e-3, 0.5, 1.0, 40.0, 1e6] {
-                    for other in [-1e3, -60.0, -8.0, -2.0, 0.0, 5.0, 40.0] {
-                        let (f, r) = (
-                            gaussian_log_add_exp(m2, det, dim, other),
-                            two_steps(m2, det, dim, other),
-                        );
-                        let err = (f - r).abs() / r.abs().max(1.0);
-                        assert!(
-                            err < 1e-14,
-                            "m2 {m2} det {det} dim {dim} other {other}: {f} vs {r}"
-                        );
-                        worst = worst.max(err);
-                    }
-                }
-            }
-        }
-        assert!(worst > 0.0, "the fold is a different computation");
-        // Beyond exp's range the two steps are taken: ℓ above `other` by about 1,000.
-        let (m2, det, other) = (0.0, 1e-30, -1e3);
-        assert!((-0.5 * m2 - LN_2PI - other) > 709.0);
-        assert_eq!(
-            gaussian_log_add_exp(m2, det, 2, other),
-            two_steps(m2, det, 2, other)
-        );
-        // A NaN or infinite distance weighs as the other term alone, as before.
-        assert_eq!(gaussian_log_add_exp(f64::NAN, 1.0, 2, -3.0), -3.0);
-        assert_eq!(gaussian_log_add_exp(f64::INFINITY, 1.0, 2, -3.0), -3.0);
-    }
-
-    /// The one-logarithm sum equals the sum of the two steps' terms to rounding (within 1e-14
-    /// of the larger of its size and 1), over sequences of the test above's terms that keep
-    /// the product below the flush, cross it, and hold single factors above it.
-    #[test]
-    fn the_mixture_sum_is_the_sum_of_the_terms() {
-        let two_steps = gaussian_log_add_exp_in_two_steps;
+    /// Terms from perfect to hopeless matches (and a NaN distance), clutter densities far
+    /// above and below, and determinants across the sensors' range.
+    fn mixture_terms() -> Vec<(f64, f64, usize, f64)> {
         let mut terms = Vec::new();
         for dim in [2, 3] {
             for m2 in [0.0, 1e-6, 0.3, 2.0, 9.21, 30.0, 200.0, 1e3, 1e5, f64::NAN] {
@@ -239,6 +181,52 @@ mod tests {
                 }
             }
         }
+        terms
+    }
+
+    /// One term.
+    fn one_term(m2: f64, det: f64, dim: usize, other: f64) -> f64 {
+        let mut sum = MixtureLogSum::default();
+        sum.add_gaussian(m2, det, dim, other);
+        sum.value()
+    }
+
+    /// A term without the logarithm of `det` equals the two steps (the Gaussian's
+    /// log-density, then `log_add_exp`) to rounding (within 1e-14 of the larger of its size
+    /// and 1); non-finite inputs take the two steps' value.
+    #[test]
+    fn the_folded_mixture_is_the_two_steps() {
+        let two_steps = gaussian_log_add_exp_in_two_steps;
+        let mut worst = 0.0f64;
+        for (m2, det, dim, other) in mixture_terms() {
+            let (f, r) = (
+                one_term(m2, det, dim, other),
+                two_steps(m2, det, dim, other),
+            );
+            let err = (f - r).abs() / r.abs().max(1.0);
+            assert!(
+                err < 1e-14,
+                "m2 {m2} det {det} dim {dim} other {other}: {f} vs {r}"
+            );
+            worst = worst.max(err);
+        }
+        assert!(worst > 0.0, "the fold is a different computation");
+        // Beyond exp's range the two steps are taken: ℓ above `other` by about 1,000.
+        let (m2, det, other) = (0.0, 1e-30, -1e3);
+        assert!((-0.5 * m2 - LN_2PI - other) > 709.0);
+        assert_eq!(one_term(m2, det, 2, other), two_steps(m2, det, 2, other));
+        // A NaN or infinite distance weighs as the other term alone, as before.
+        assert_eq!(one_term(f64::NAN, 1.0, 2, -3.0), -3.0);
+        assert_eq!(one_term(f64::INFINITY, 1.0, 2, -3.0), -3.0);
+    }
+
+    /// The one-logarithm sum equals the sum of the two steps' terms to rounding (within 1e-14
+    /// of the larger of its size and 1), over sequences of [`mixture_terms`] that keep
+    /// the product below the flush, cross it, and hold single factors above it.
+    #[test]
+    fn the_mixture_sum_is_the_sum_of_the_terms() {
+        let two_steps = gaussian_log_add_exp_in_two_steps;
+        let terms = mixture_terms();
         let (mut flushed, mut worst) = (0, 0.0f64);
         for len in [1, 2, 7, 38, 200] {
             for chunk in terms.chunks(len) {

@@ -352,15 +352,20 @@ impl LandmarkMap {
 
     /// Drops a pending existence value of `slot` (its landmark is being written whole).
     fn forget_pending(&mut self, slot: usize) {
-        if let Ok(i) = self.pending_at(slot)
-            && let Some(held) = self.pending.as_mut()
-        {
-            let v = Arc::make_mut(held);
-            v.remove(i);
-            if v.is_empty() {
-                self.pending = None;
-            }
+        self.take_pending(slot);
+    }
+
+    /// Removes and returns the pending existence value of `slot`, if it has one.
+    #[inline]
+    fn take_pending(&mut self, slot: usize) -> Option<f64> {
+        let held = self.pending.as_mut()?;
+        let i = held.binary_search_by_key(&(slot as u32), |p| p.0).ok()?;
+        let v = Arc::make_mut(held);
+        let (_, e) = v.remove(i);
+        if v.is_empty() {
+            self.pending = None;
         }
+        Some(e)
     }
 
     /// The current existence log-odds of the landmark in `slot`.
@@ -443,25 +448,38 @@ impl LandmarkMap {
         self.reindex(slot, old.as_ref(), Some(&lm));
     }
 
-    /// Rewrites the landmark in `slot` as `f` makes it from the landmark there and its
-    /// current existence log-odds ([`LandmarkMap::current_existence`]): `get` and `set` in one
-    /// walk down the trie, for an update that reads the landmark it replaces. The slot must
-    /// hold a landmark (the caller read it in the same step); an empty one is left empty,
-    /// though the walk has then copied its path's shared nodes.
-    pub fn update(&mut self, slot: usize, f: impl FnOnce(&Landmark, f64) -> Landmark) {
+    /// Rewrites the landmark in `slot` in place: `f` gets it with its `existence` field set to
+    /// its current existence log-odds ([`LandmarkMap::current_existence`]; a value held apart
+    /// is taken into the landmark) and changes what it will. `get` and `set` in one walk down
+    /// the trie, without copying the landmark out and back, for an update that reads the
+    /// landmark it replaces. The slot must hold a landmark (the caller read it in the same
+    /// step); an empty one is left empty, though the walk has then copied its path's shared
+    /// nodes.
+    #[inline]
+    pub fn update(&mut self, slot: usize, f: impl FnOnce(&mut Landmark)) {
         debug_assert!(self.get(slot).is_some(), "slot {slot} holds no landmark");
         if slot >= self.slots {
             return;
         }
-        let held = self.pending_at(slot).ok().map(|i| self.pending()[i].1);
-        let cell = self.cell_mut(slot);
-        let Some(old) = *cell else {
+        // Only present landmarks have held values (`set_existence`), so taking it before the
+        // walk loses nothing.
+        let held = self.take_pending(slot);
+        let indexed = !self.unindexed;
+        let Some(lm) = self.cell_mut(slot).as_mut() else {
             return;
         };
-        let new = f(&old, held.unwrap_or(old.existence));
-        *cell = Some(new);
-        self.forget_pending(slot);
-        self.reindex(slot, Some(&old), Some(&new));
+        if let Some(e) = held {
+            lm.existence = e;
+        }
+        let before = indexed.then(|| Place::of(lm));
+        f(lm);
+        if let Some(before) = before {
+            let after = Place::of(lm);
+            if before != after {
+                self.index_remove(before, slot);
+                self.index_insert(after, slot);
+            }
+        }
     }
 
     /// Removes the landmark in `slot`, leaving the slot empty.
@@ -912,7 +930,10 @@ mod tests {
         for slot in [5, 6, 150] {
             let old = *a.get(slot).unwrap();
             let existence = a.current_existence(slot, &old);
-            a.update(slot, step);
+            a.update(slot, |lm| {
+                assert_eq!(lm.existence, existence, "the current value, held or not");
+                *lm = step(lm, lm.existence);
+            });
             b.set(slot, step(&old, existence));
         }
         assert_eq!(a, b);

@@ -387,11 +387,10 @@ fn update_landmarks(
             if !out.posterior.is_finite() {
                 continue;
             }
-            p.map.update(s, |old, existence| Landmark {
-                gaussian: out.posterior,
-                existence: (existence + a.existence_hit).min(a.existence_max),
-                hits: old.hits + 1,
-                ..*old
+            p.map.update(s, |lm| {
+                lm.gaussian = out.posterior;
+                lm.existence = (lm.existence + a.existence_hit).min(a.existence_max);
+                lm.hits += 1;
             });
             if let Some(o) = &mut observed {
                 o[i].push(s);

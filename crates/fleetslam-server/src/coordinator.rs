@@ -606,8 +606,9 @@ fn spawn_snapshot_writer(run: String, store: Store) -> mpsc::UnboundedSender<Sna
     let (tx, mut rx) = mpsc::unbounded_channel::<SnapshotJob>();
     tokio::spawn(async move {
         let mut unstored: Vec<fleetslam_store::TrajectoryChunk> = Vec::new();
-        // The last snapshot's size: the next one's buffer starts an eighth larger.
-        let mut last_len = 0usize;
+        // The last snapshot's buffer, encoded into again (it is back here once stored, and
+        // lost only when a snapshot fails before that).
+        let mut buffer: Vec<u8> = Vec::new();
         while let Some(job) = rx.recv().await {
             let SnapshotJob {
                 snap,
@@ -619,29 +620,27 @@ fn spawn_snapshot_writer(run: String, store: Store) -> mpsc::UnboundedSender<Sna
             let t = snap.filed_t();
             let res = async {
                 store.append_training(&run, &rows).await?;
-                let capacity = last_len + last_len / 8;
+                let mut data = std::mem::take(&mut buffer);
                 let (data, chunks) = tokio::task::spawn_blocking(move || {
-                    Ok::<_, ApiError>((
-                        snap.encode_sized(capacity)?,
-                        history::trajectory_chunks(&points.0, &points.1)?,
-                    ))
+                    snap.encode_into(&mut data)?;
+                    Ok::<_, ApiError>((data, history::trajectory_chunks(&points.0, &points.1)?))
                 })
                 .await
                 .map_err(ApiError::internal)??;
-                last_len = data.len();
                 unstored.extend(chunks);
-                store.put_trajectory_chunks(&run, &unstored).await?;
-                unstored.clear();
-                store
-                    .put_snapshot(
-                        &run,
-                        &NewSnapshot {
-                            applied: applied as i64,
-                            t,
-                            data,
-                        },
-                    )
-                    .await?;
+                let snapshot = NewSnapshot {
+                    applied: applied as i64,
+                    t,
+                    data,
+                };
+                let stored = async {
+                    store.put_trajectory_chunks(&run, &unstored).await?;
+                    unstored.clear();
+                    store.put_snapshot(&run, &snapshot).await
+                }
+                .await;
+                buffer = snapshot.data;
+                stored?;
                 Ok(())
             }
             .await;

@@ -96,21 +96,21 @@ impl RunSnapshot {
     /// on SQLite in 5-9 ms against 12-14 ms (`recovery_cost`, README, session 24). Both give
     /// back the same bits.
     pub fn encode(&self) -> Result<Vec<u8>, ApiError> {
-        self.encode_sized(0)
+        let mut out = Vec::new();
+        self.encode_into(&mut out)?;
+        Ok(out)
     }
 
-    /// [`RunSnapshot::encode`] into a buffer of `capacity` bytes to start with. A run's
-    /// snapshots grow slowly, so the writer passes a little more than the last one's size.
-    /// Grown by doubling from empty, the buffer of a 2 MB snapshot is reallocated about 18
-    /// times, and the kernel's zeroing of fresh pages was the largest single part of the
-    /// async runtime's samples under `perf`, about half of it under this buffer (README,
-    /// session 26: about 200 fewer page faults a snapshot with the capacity).
-    pub fn encode_sized(&self, capacity: usize) -> Result<Vec<u8>, ApiError> {
-        let mut out = Vec::with_capacity(capacity);
-        ciborium::into_writer(self, &mut out).map_err(|e| {
+    /// [`RunSnapshot::encode`] into `out`, which is cleared first and keeps its capacity.
+    /// A run's snapshot writer passes the buffer of its last snapshot: grown by doubling
+    /// from empty, the buffer of a 2 MB snapshot is reallocated about 18 times, and the
+    /// kernel's zeroing of fresh pages was the largest single part of the async runtime's
+    /// samples under `perf`, about half of it under this buffer (README, sessions 26-27).
+    pub fn encode_into(&self, out: &mut Vec<u8>) -> Result<(), ApiError> {
+        out.clear();
+        ciborium::into_writer(self, out).map_err(|e| {
             ApiError::internal(anyhow::anyhow!("a snapshot could not be encoded: {e}"))
-        })?;
-        Ok(out)
+        })
     }
 
     /// A stored snapshot: CBOR ([`RunSnapshot::encode`]), or JSON as snapshots were stored

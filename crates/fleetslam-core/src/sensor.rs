@@ -181,8 +181,9 @@ pub fn range_bearing_predict(
 /// bearing the filter predicts), this takes libm's own path without its special cases
 /// (zeros, infinities, NaN, `x = 1`, ratios beyond 2^±64): `atan(|y/x|)` placed in its
 /// quadrant by the same operations, so the result has the same bits as `libm::atan2`'s
-/// (test `bearing_atan2_is_libms_atan2`); everything else goes to `libm::atan2`. The
-/// checks it skips were about a third of its instructions (README, session 27).
+/// (test `bearing_atan2_is_libms_atan2`); everything else goes to `libm::atan2`. Skipping
+/// those checks and the call saved 15-27 of the 104 instructions a bearing cost (callgrind,
+/// README, session 27).
 #[inline]
 pub fn bearing_atan2(y: f64, x: f64) -> f64 {
     // The low 31 bits of the high word: exponent and leading mantissa bits.

@@ -329,7 +329,11 @@ impl LandmarkMap {
         if self.unindexed {
             return;
         }
-        let (a, b) = (old.map(Place::of), new.map(Place::of));
+        self.move_in_index(slot, old.map(Place::of), new.map(Place::of));
+    }
+
+    /// Moves `slot` in the index from place `a` to place `b` (`None`: not indexed).
+    fn move_in_index(&mut self, slot: usize, a: Option<Place>, b: Option<Place>) {
         if a == b {
             return;
         }
@@ -350,17 +354,12 @@ impl LandmarkMap {
         self.pending().binary_search_by_key(&(slot as u32), |p| p.0)
     }
 
-    /// Drops a pending existence value of `slot` (its landmark is being written whole).
-    fn forget_pending(&mut self, slot: usize) {
-        self.take_pending(slot);
-    }
-
-    /// Removes and returns the pending existence value of `slot`, if it has one.
+    /// Removes and returns the pending existence value of `slot`, if it has one (its
+    /// landmark is being written whole).
     #[inline]
     fn take_pending(&mut self, slot: usize) -> Option<f64> {
-        let held = self.pending.as_mut()?;
-        let i = held.binary_search_by_key(&(slot as u32), |p| p.0).ok()?;
-        let v = Arc::make_mut(held);
+        let i = self.pending_at(slot).ok()?;
+        let v = Arc::make_mut(self.pending.as_mut()?);
         let (_, e) = v.remove(i);
         if v.is_empty() {
             self.pending = None;
@@ -440,7 +439,7 @@ impl LandmarkMap {
         if slot >= self.slots {
             return;
         }
-        self.forget_pending(slot);
+        self.take_pending(slot);
         let old = self.cell_mut(slot).replace(lm);
         if old.is_none() {
             self.live += 1;
@@ -475,17 +474,14 @@ impl LandmarkMap {
         f(lm);
         if let Some(before) = before {
             let after = Place::of(lm);
-            if before != after {
-                self.index_remove(before, slot);
-                self.index_insert(after, slot);
-            }
+            self.move_in_index(slot, Some(before), Some(after));
         }
     }
 
     /// Removes the landmark in `slot`, leaving the slot empty.
     pub fn remove(&mut self, slot: usize) {
         if self.get(slot).is_some() {
-            self.forget_pending(slot);
+            self.take_pending(slot);
             let old = self.cell_mut(slot).take();
             self.live -= 1;
             self.reindex(slot, old.as_ref(), None);

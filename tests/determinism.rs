@@ -216,3 +216,44 @@ fn different_seeds_differ() {
         "different seeds gave the same particles"
     );
 }
+
+/// The steps' work items are compiled for the CPU's instruction set (AVX2 where it has it)
+/// and for the baseline: both give the same bits, for each measurement model, association
+/// and FastSLAM version (2.0's proposal, 1.0's sampling, the unknown association's search).
+#[test]
+fn the_instruction_set_changes_no_bit() {
+    // On x86_64 the comparison needs a CPU with AVX2 and FMA (the test machines have them);
+    // without them both filters would run the baseline.
+    #[cfg(target_arch = "x86_64")]
+    assert!(
+        std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma"),
+        "this CPU lacks AVX2 or FMA: the dispatched and the baseline steps would be the same code"
+    );
+    let cases: [(LandmarkKind, bool, FastSlamVersion); 3] = [
+        (LandmarkKind::RangeBearing2d, true, FastSlamVersion::V2),
+        (LandmarkKind::RangeBearing2d, false, FastSlamVersion::V2),
+        (LandmarkKind::Point3d, false, FastSlamVersion::V1),
+    ];
+    for (kind, with_ids, version) in cases {
+        let sim = small_sim(2, 15.0, 11, |c| {
+            c.kind = kind;
+            c.with_ids = with_ids;
+        });
+        let mut cfg = FilterConfig::from_header(&sim.log.header);
+        cfg.particles = 60;
+        cfg.version = version;
+        let run = |baseline: bool| {
+            let mut slam = FastSlam::new(cfg.clone()).unwrap();
+            if baseline {
+                slam = slam.baseline_simd();
+            }
+            let out = run_log(&mut slam, &sim.log, TrajectoryEstimate::Mean, |_, _| {}).unwrap();
+            (slam.snapshot(), format!("{:?}", out.estimate.trajectories))
+        };
+        let (a, ta) = run(false);
+        let (b, tb) = run(true);
+        assert!(a.stats.landmark_updates > 0 && a.stats.resamples > 0);
+        assert_same_state(&a, &b);
+        assert!(ta == tb, "trajectories differ ({kind:?}, ids {with_ids})");
+    }
+}

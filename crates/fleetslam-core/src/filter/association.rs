@@ -80,6 +80,7 @@ pub(super) fn match_ll<const D: usize, M: MeasurementModel<D>>(
 /// from every landmark of the map and from the landmarks started earlier in the same record;
 /// otherwise it is ambiguous (`Ignore`).
 #[allow(clippy::too_many_arguments)]
+#[inline(always)]
 pub(super) fn associate_record<const D: usize, M: MeasurementModel<D>>(
     ctx: &StepCtx<'_>,
     q: &[SMatrix<f64, D, D>],

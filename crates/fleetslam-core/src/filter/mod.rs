@@ -313,6 +313,12 @@ pub struct FastSlam {
     /// that pose), for its mean pose and for its next step's motion; a robot's list is empty
     /// (and computed when needed) before its first step and after a restore.
     headings: Vec<Vec<PositionHeading>>,
+    /// The instruction set the steps' work items are compiled for, detected at construction
+    /// (AVX2 where the CPU has it, as the EKF's batches): the filter's pose and matrix
+    /// arithmetic then takes fewer instructions (three-operand forms, wider moves). Rust
+    /// never fuses a multiply and an add on its own, so every instruction set gives the
+    /// same bits ([`FastSlam::baseline_simd`] and its test).
+    arch: pulp::Arch,
 }
 
 /// The association thresholds and clutter densities that follow from a configuration (χ²
@@ -483,7 +489,15 @@ impl FastSlam {
             stats: FilterStats::default(),
             weights: Vec::new(),
             headings: Vec::new(),
+            arch: pulp::Arch::new(),
         })
+    }
+
+    /// The same filter with its steps compiled for the baseline instruction set (no runtime
+    /// dispatch): for checking that the dispatch changes no result.
+    pub fn baseline_simd(mut self) -> Self {
+        self.arch = pulp::Arch::Scalar;
+        self
     }
 
     pub fn config(&self) -> &FilterConfig {
@@ -792,6 +806,7 @@ impl FastSlam {
         };
 
         let batch = work_item_len(n, rayon::current_num_threads());
+        let arch = self.arch;
         let step_stats = (
             self.particles.par_chunks_mut(batch),
             mine.poses.par_chunks_mut(batch),
@@ -815,7 +830,7 @@ impl FastSlam {
                         pose_covs,
                         odometry_scales,
                     };
-                    let stats = process_chunk(&ctx, &mut chunk, headings);
+                    let stats = process_chunk(arch, &ctx, &mut chunk, headings);
                     for (p, h) in chunk.poses.iter().zip(headings.iter_mut()) {
                         h.move_to(p);
                     }
@@ -1192,6 +1207,7 @@ impl FastSlam {
             stats: s.stats,
             weights: Vec::new(),
             headings: Vec::new(),
+            arch: pulp::Arch::new(),
         })
     }
 }

@@ -53,6 +53,7 @@ pub(super) fn sighting_marginal(
 /// with known ids (`acts` holds `Update` for every observation with an id) an id the map
 /// does not hold becomes `New`.
 #[allow(clippy::too_many_arguments)]
+#[inline(always)]
 pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
     ctx: &StepCtx<'_>,
     q: &[SMatrix<f64, D, D>],

@@ -6,7 +6,7 @@
 //! bit-partitioned trie whose branch nodes have [`BRANCH`] children behind `Arc`s and whose
 //! leaves hold [`LEAF`] landmarks inline. Reading a landmark follows about log₈(M/4)
 //! pointers; writing one copies the nodes of its path only where another map shares them
-//! (`Arc::make_mut`), so a particle that updates the same leaf twice in a step copies it
+//! (`make_mut`), so a particle that updates the same leaf twice in a step copies it
 //! once, and a resample copies nothing but the root pointer. Landmarks are not behind
 //! pointers of their own: a leaf copy is one allocation, and freeing it touches no per
 //! landmark counter. (`rpds`/`imbl` vectors either keep every element behind its own
@@ -40,6 +40,12 @@ mod pool;
 pub use pool::{MAX_HEIGHT, MapPool, PoolError, PoolReader, PoolWriter, PooledMap};
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use std::sync::Arc;
+/// The handle of what maps share and copy on write (trie nodes, held existence values):
+/// `triomphe`'s `Arc`, which has no weak count, so that `make_mut` on what this map alone
+/// holds (every write of a path copied earlier in the step) is one load of the count, not
+/// `std`'s compare-and-swap on it (a locked instruction, one per level of every landmark
+/// write).
+use triomphe::Arc as CowArc;
 
 /// Side of a cell of the spatial index [m]. The index does not change results, only speed:
 /// a query visits the cells its disc overlaps, so cells of about the association radius keep
@@ -85,16 +91,16 @@ pub struct Landmark {
 /// A node of the trie, behind its own `Arc` so that a branch holds 8 small handles (a copied
 /// branch is 128 bytes, a copied leaf 4 landmarks).
 enum Node {
-    Branch(Arc<[Option<Node>; BRANCH]>),
-    Leaf(Arc<[Option<Landmark>; LEAF]>),
+    Branch(CowArc<[Option<Node>; BRANCH]>),
+    Leaf(CowArc<[Option<Landmark>; LEAF]>),
 }
 
 impl Node {
     fn empty(leaf: bool) -> Node {
         if leaf {
-            Node::Leaf(Arc::new([None; LEAF]))
+            Node::Leaf(CowArc::new([None; LEAF]))
         } else {
-            Node::Branch(Arc::new(Default::default()))
+            Node::Branch(CowArc::new(Default::default()))
         }
     }
 }
@@ -139,7 +145,7 @@ pub struct LandmarkMap {
     /// writing each into the trie would copy its leaf (after a resample, its whole path).
     /// `None` when there are none (never an empty list), so that reading a landmark's
     /// existence in a map without any costs no trip to the heap.
-    pending: Option<Arc<Vec<(u32, f64)>>>,
+    pending: Option<CowArc<Vec<(u32, f64)>>>,
     /// No spatial index is kept ([`LandmarkMap::without_index`]); `index` stays empty and
     /// [`LandmarkMap::for_each_near`] visits every landmark.
     unindexed: bool,
@@ -276,7 +282,7 @@ impl LandmarkMap {
             if let Some(old) = self.root.take() {
                 let mut c: [Option<Node>; BRANCH] = Default::default();
                 c[0] = Some(old);
-                self.root = Some(Node::Branch(Arc::new(c)));
+                self.root = Some(Node::Branch(CowArc::new(c)));
             }
             self.height += 1;
         }
@@ -290,13 +296,13 @@ impl LandmarkMap {
         let mut node = self.root.get_or_insert_with(|| Node::empty(height == 0));
         for level in (0..height).rev() {
             node = match node {
-                Node::Branch(c) => Arc::make_mut(c)[Self::child(slot, level)]
+                Node::Branch(c) => CowArc::make_mut(c)[Self::child(slot, level)]
                     .get_or_insert_with(|| Node::empty(level == 0)),
                 Node::Leaf(_) => unreachable!("a leaf above the leaf level"),
             };
         }
         match node {
-            Node::Leaf(l) => &mut Arc::make_mut(l)[slot & (LEAF - 1)],
+            Node::Leaf(l) => &mut CowArc::make_mut(l)[slot & (LEAF - 1)],
             Node::Branch(_) => unreachable!("a branch at the leaf level"),
         }
     }
@@ -359,7 +365,7 @@ impl LandmarkMap {
     #[inline]
     fn take_pending(&mut self, slot: usize) -> Option<f64> {
         let i = self.pending_at(slot).ok()?;
-        let v = Arc::make_mut(self.pending.as_mut()?);
+        let v = CowArc::make_mut(self.pending.as_mut()?);
         let (_, e) = v.remove(i);
         if v.is_empty() {
             self.pending = None;
@@ -389,7 +395,7 @@ impl LandmarkMap {
             return;
         }
         let at = self.pending_at(slot);
-        let v = Arc::make_mut(self.pending.get_or_insert_with(Default::default));
+        let v = CowArc::make_mut(self.pending.get_or_insert_with(Default::default));
         match at {
             Ok(i) => v[i].1 = e,
             Err(i) => v.insert(i, (slot as u32, e)),

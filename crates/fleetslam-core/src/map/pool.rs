@@ -19,7 +19,7 @@
 use super::{BRANCH, BRANCH_BITS, LEAF, LEAF_BITS, Landmark, LandmarkMap, Node, PENDING_EXISTENCE};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
-use std::sync::Arc;
+use triomphe::Arc as CowArc;
 
 /// Branch levels a pooled map may have: a trie of this height holds `LEAF · BRANCH^20`
 /// (2^62) slots, the most a 64-bit slot number can address with room to spare.
@@ -116,8 +116,8 @@ impl<'a> PoolWriter<'a> {
     /// without children (read back as an absent child, which reads the same).
     fn node(&mut self, node: &'a Node) -> Result<Option<u32>, PoolError> {
         let key = match node {
-            Node::Leaf(l) => Arc::as_ptr(l).cast::<()>(),
-            Node::Branch(c) => Arc::as_ptr(c).cast::<()>(),
+            Node::Leaf(l) => CowArc::as_ptr(l).cast::<()>(),
+            Node::Branch(c) => CowArc::as_ptr(c).cast::<()>(),
         };
         if let Some(&i) = self.seen.get(&key) {
             return Ok(Some(i));
@@ -189,7 +189,7 @@ impl PoolReader {
                         count: l.iter().flatten().count(),
                         last: l.iter().rposition(Option::is_some),
                     };
-                    (Node::Leaf(Arc::from(l)), info)
+                    (Node::Leaf(CowArc::new(*l)), info)
                 }
                 PoolNode::Branch(kids) => {
                     let mut level = None;
@@ -228,7 +228,7 @@ impl PoolReader {
                         count,
                         last,
                     };
-                    (Node::Branch(Arc::new(children)), info)
+                    (Node::Branch(CowArc::new(children)), info)
                 }
             };
             nodes.push(built);
@@ -306,7 +306,7 @@ impl PoolReader {
                 "a map holds an existence value for its empty slot {s}"
             )));
         }
-        map.pending = (!m.pending.is_empty()).then(|| Arc::new(m.pending.clone()));
+        map.pending = (!m.pending.is_empty()).then(|| CowArc::new(m.pending.clone()));
         if !map.unindexed {
             map.index_from(self.previous.as_ref());
             self.previous = Some(map.clone());
@@ -336,8 +336,8 @@ impl LandmarkMap {
     fn reindex_diff(&mut self, old: Option<&Node>, new: Option<&Node>, level: u32, base: usize) {
         match (old, new) {
             (None, None) => {}
-            (Some(Node::Leaf(a)), Some(Node::Leaf(b))) if Arc::ptr_eq(a, b) => {}
-            (Some(Node::Branch(a)), Some(Node::Branch(b))) if Arc::ptr_eq(a, b) => {}
+            (Some(Node::Leaf(a)), Some(Node::Leaf(b))) if CowArc::ptr_eq(a, b) => {}
+            (Some(Node::Branch(a)), Some(Node::Branch(b))) if CowArc::ptr_eq(a, b) => {}
             _ if level == 0 => {
                 let cells = |n: Option<&Node>| match n {
                     Some(Node::Leaf(l)) => **l,

@@ -497,7 +497,9 @@ impl LandmarkMap {
     /// Calls `f` with every landmark whose mean lies within `r` (ground plane) of `(x, y)`,
     /// and perhaps with others (those of the cells the disc overlaps, and those whose
     /// variance exceeds [`INDEX_WIDE_TRACE`]): each landmark at most once, in no particular
-    /// order. The caller applies its own exact test.
+    /// order. The caller applies its own exact test. Always inlined, so that the caller's
+    /// closure is compiled with the caller (the filter's steps: for their instruction set).
+    #[inline(always)]
     pub fn for_each_near(&self, x: f64, y: f64, r: f64, mut f: impl FnMut(usize, &Landmark)) {
         let span = |v: f64| (cell(v - r), cell(v + r));
         let ((x0, x1), (y0, y1)) = (span(x), span(y));
@@ -509,19 +511,23 @@ impl LandmarkMap {
             self.for_each(f);
             return;
         }
-        let mut visit = |place: Place| {
-            for &s in self.index.get(&place).into_iter().flat_map(|l| l.iter()) {
-                let s = s as usize;
-                let l = self.get(s).expect("the index names present landmarks");
-                f(s, l);
-            }
-        };
         for cx in x0..=x1 {
             for cy in y0..=y1 {
-                visit(Place::Cell(cx, cy));
+                self.visit_place(Place::Cell(cx, cy), &mut f);
             }
         }
-        visit(Place::Wide);
+        self.visit_place(Place::Wide, &mut f);
+    }
+
+    /// Calls `f` with the landmarks the index keeps at `place` (inlined with
+    /// [`LandmarkMap::for_each_near`]).
+    #[inline(always)]
+    fn visit_place(&self, place: Place, f: &mut impl FnMut(usize, &Landmark)) {
+        for &s in self.index.get(&place).into_iter().flat_map(|l| l.iter()) {
+            let s = s as usize;
+            let l = self.get(s).expect("the index names present landmarks");
+            f(s, l);
+        }
     }
 
     /// Calls `f` with every present landmark and its slot, in slot order (a recursive walk:

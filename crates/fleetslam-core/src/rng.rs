@@ -75,7 +75,7 @@ impl StepStreams {
     }
 
     /// The generator of `lane` at this step.
-    #[inline]
+    #[inline(always)]
     pub fn lane(&self, lane: u64) -> Stream {
         let c = splitmix64(self.step_key ^ lane);
         // `seed_from_u64(c)`: SplitMix64 from state `c` fills the 256-bit seed with its first

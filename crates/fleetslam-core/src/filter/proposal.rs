@@ -23,6 +23,7 @@ use rand_distr::StandardNormal;
 /// robots' pose Gaussians (a point pose has a zero covariance). `None` for a degenerate
 /// geometry, or for the stepping robot itself (whose sightings are refused before a step).
 #[allow(clippy::type_complexity, clippy::too_many_arguments)]
+#[inline(always)]
 pub(super) fn sighting_marginal(
     ctx: &StepCtx<'_>,
     particle: usize,
@@ -156,6 +157,7 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
 /// the particle of index `particle`: the robot's predicted pose Gaussian `N(mean0, pc0)` updated by each of
 /// its sightings of other robots (an EKF update, marginal over the other robot's pose
 /// Gaussian), and the log-weight increment, each sighting's mixture likelihood.
+#[inline(always)]
 pub(super) fn sighting_update(
     ctx: &StepCtx<'_>,
     particle: usize,
@@ -182,6 +184,7 @@ pub(super) fn sighting_update(
 /// of the pose Gaussian `N(mu, pc)` of the robot that saw it: the sighting's log-likelihood,
 /// marginal over both Gaussians ([`sighting_marginal`]), and the updated mean and
 /// covariance. `None` for a degenerate geometry.
+#[inline(always)]
 pub(super) fn sighting_step(
     ctx: &StepCtx<'_>,
     particle: usize,

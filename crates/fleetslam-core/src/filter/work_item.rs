@@ -443,6 +443,7 @@ fn update_landmarks(
 /// Phase 3: sightings of other robots weigh each particle by the same mixture, with the
 /// sighting noise, marginal over the other robot's pose Gaussian (the deferred path and
 /// 2.0's proposal with `sightings_in_proposal` weighed them already).
+#[inline(always)]
 fn weigh_sightings(ctx: &StepCtx<'_>, chunk: &mut Chunk<'_>, d: &Decisions) {
     let cfg = ctx.cfg;
     for (i, (p, pose)) in chunk.particles.iter_mut().zip(&*chunk.poses).enumerate() {
@@ -468,6 +469,7 @@ fn weigh_sightings(ctx: &StepCtx<'_>, chunk: &mut Chunk<'_>, d: &Decisions) {
 /// Phase 4 (unknown association): landmarks that this record brought closer than the
 /// minimum separation to another landmark of their map are one landmark: the one observed
 /// more often stays and takes the other's observation count and existence.
+#[inline(always)]
 fn merge_close_landmarks(
     ctx: &StepCtx<'_>,
     chunk: &mut Chunk<'_>,
@@ -526,6 +528,7 @@ fn merge_close_landmarks(
 /// Phase 5 (unknown association, with a sensor range): landmarks in the sensor's field of
 /// view that the record did not observe lose existence log-odds, and are removed below
 /// zero.
+#[inline(always)]
 fn lower_existence_in_view(
     ctx: &StepCtx<'_>,
     chunk: &mut Chunk<'_>,

@@ -460,7 +460,7 @@ impl LandmarkMap {
     /// landmark it replaces. The slot must hold a landmark (the caller read it in the same
     /// step); an empty one is left empty, though the walk has then copied its path's shared
     /// nodes.
-    #[inline]
+    #[inline(always)]
     pub fn update(&mut self, slot: usize, f: impl FnOnce(&mut Landmark)) {
         debug_assert!(self.get(slot).is_some(), "slot {slot} holds no landmark");
         if slot >= self.slots {

@@ -52,8 +52,8 @@ pub(super) struct Chunk<'a> {
 }
 
 /// One work item: `chunk`'s particles, `headings` the robot's position and `(sin θ, cos θ)`
-/// of its heading in each of them before the step.
-/// Compiled for the instruction set `arch` ([`ChunkWork`]).
+/// of its heading in each of them before the step, compiled for the instruction set `arch`
+/// ([`ChunkWork`]).
 pub(super) fn process_chunk(
     arch: pulp::Arch,
     ctx: &StepCtx<'_>,
@@ -67,12 +67,14 @@ pub(super) fn process_chunk(
     })
 }
 
-/// A work item as one [`pulp::WithSimd`] operation: `with_simd` and the phases it calls
-/// (`#[inline(always)]`, down to the proposal and the association) are compiled into the
-/// function `Arch::dispatch` builds for the detected instruction set. Functions they do not
-/// inline (the map's writes, `libm::atan`, the updater's batch with its own dispatch) stay
-/// as they are. On the simulated speed log this took the filter's steps from 3,741 M to
-/// 3,518 M instructions (README, session 28).
+/// A work item as one [`pulp::WithSimd`] operation: `with_simd` and what it calls
+/// `#[inline(always)]` (the phases, the proposal, the association, the sightings' marginal,
+/// the random streams' set-up, the map's `update` and `for_each_near`) are compiled into
+/// the function `Arch::dispatch` builds for the detected instruction set. What they do not
+/// inline (the trie's write walk, `LandmarkMap::for_each`, `libm::atan`, the updater's batch
+/// with its own dispatch) stays as it is. On the simulated speed log the dispatch took the
+/// filter's steps from 3,741 M to 3,518 M instructions, and the inlining to 3,406 M
+/// (README, session 28).
 struct ChunkWork<'a, 'b, 'c> {
     ctx: &'a StepCtx<'b>,
     chunk: &'a mut Chunk<'c>,

@@ -14,12 +14,14 @@ fn run_with_threads(log: &Log, cfg: &FilterConfig, threads: usize) -> (Snapshot,
         .num_threads(threads)
         .build()
         .unwrap();
-    pool.install(|| {
-        let mut slam = FastSlam::new(cfg.clone()).unwrap();
-        let out = run_log(&mut slam, log, TrajectoryEstimate::Mean, |_, _| {}).unwrap();
-        let traj = format!("{:?}", out.estimate.trajectories);
-        (slam.snapshot(), traj)
-    })
+    pool.install(|| run_filter(FastSlam::new(cfg.clone()).unwrap(), log))
+}
+
+/// Runs `slam` over `log`: its final state and its trajectories as text.
+fn run_filter(mut slam: FastSlam, log: &Log) -> (Snapshot, String) {
+    let out = run_log(&mut slam, log, TrajectoryEstimate::Mean, |_, _| {}).unwrap();
+    let traj = format!("{:?}", out.estimate.trajectories);
+    (slam.snapshot(), traj)
 }
 
 /// The filter's state as text, without the one field that is a wall-clock measurement.
@@ -242,16 +244,9 @@ fn the_instruction_set_changes_no_bit() {
         let mut cfg = FilterConfig::from_header(&sim.log.header);
         cfg.particles = 60;
         cfg.version = version;
-        let run = |baseline: bool| {
-            let mut slam = FastSlam::new(cfg.clone()).unwrap();
-            if baseline {
-                slam = slam.baseline_simd();
-            }
-            let out = run_log(&mut slam, &sim.log, TrajectoryEstimate::Mean, |_, _| {}).unwrap();
-            (slam.snapshot(), format!("{:?}", out.estimate.trajectories))
-        };
-        let (a, ta) = run(false);
-        let (b, tb) = run(true);
+        let slam = FastSlam::new(cfg).unwrap();
+        let (a, ta) = run_filter(slam.clone(), &sim.log);
+        let (b, tb) = run_filter(slam.baseline_simd(), &sim.log);
         assert!(a.stats.landmark_updates > 0 && a.stats.resamples > 0);
         assert_same_state(&a, &b);
         assert!(ta == tb, "trajectories differ ({kind:?}, ids {with_ids})");

@@ -45,7 +45,7 @@ use std::sync::Arc;
 /// holds (every write of a path copied earlier in the step) is one load of the count, not
 /// `std`'s compare-and-swap on it (a locked instruction, one per level of every landmark
 /// write).
-use triomphe::Arc as CowArc;
+type CowArc<T> = triomphe::Arc<T>;
 
 /// Side of a cell of the spatial index [m]. The index does not change results, only speed:
 /// a query visits the cells its disc overlaps, so cells of about the association radius keep

@@ -16,10 +16,11 @@
 //! it from the previous map read from the same pool, changed only where their tries differ
 //! ([`PoolReader::map`]), so maps that share most of their nodes share most of their index.
 
-use super::{BRANCH, BRANCH_BITS, LEAF, LEAF_BITS, Landmark, LandmarkMap, Node, PENDING_EXISTENCE};
+use super::{
+    BRANCH, BRANCH_BITS, CowArc, LEAF, LEAF_BITS, Landmark, LandmarkMap, Node, PENDING_EXISTENCE,
+};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
-use triomphe::Arc as CowArc;
 
 /// Branch levels a pooled map may have: a trie of this height holds `LEAF · BRANCH^20`
 /// (2^62) slots, the most a 64-bit slot number can address with room to spare.

@@ -1,8 +1,9 @@
 //! Cost of one EKF landmark update (`EkfUpdater`), alone and in batches.
 //!
-//! `ekf_update/<kind>`: one `update` call. `ekf_update_batch/<kind>/<n>`: one `update_batch`
-//! of `n` independent updates; the throughput is in updates per second, so criterion's time
-//! divided by `n` is the time per update.
+//! `ekf_update/<kind>`: one `update` call. `ekf_update_batch/<kind>/<needs>/<n>`: one
+//! `update_batch` of `n` independent updates asking for the posterior only (`posterior`,
+//! FastSLAM 2.0) or with the likelihood (`likelihood`); the throughput is in updates per
+//! second, so criterion's time divided by `n` is the time per update.
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use fleetslam_core::Pose2;
@@ -62,20 +63,22 @@ fn bench_batch(c: &mut Criterion) {
         .measurement_time(Duration::from_secs(2));
     for kind in KINDS {
         let u = EkfUpdater::new(kind, &SensorNoise::default());
-        for n in [1usize, 100, 10_000] {
-            let inp = inputs(&u, n);
-            let mut out = vec![UpdateOutput::default(); n];
-            g.throughput(Throughput::Elements(n as u64));
-            g.bench_with_input(BenchmarkId::new(kind.as_str(), n), &inp, |b, inp| {
-                b.iter(|| {
-                    u.update_batch(
-                        UpdateNeeds::PosteriorAndLikelihood,
-                        black_box(inp),
-                        &mut out,
-                    );
-                    black_box(&out);
-                })
-            });
+        for (needs, name) in [
+            (UpdateNeeds::Posterior, "posterior"),
+            (UpdateNeeds::PosteriorAndLikelihood, "likelihood"),
+        ] {
+            for n in [1usize, 100, 10_000] {
+                let inp = inputs(&u, n);
+                let mut out = vec![UpdateOutput::default(); n];
+                g.throughput(Throughput::Elements(n as u64));
+                let id = BenchmarkId::new(format!("{}/{name}", kind.as_str()), n);
+                g.bench_with_input(id, &inp, |b, inp| {
+                    b.iter(|| {
+                        u.update_batch(needs, black_box(inp), &mut out);
+                        black_box(&out);
+                    })
+                });
+            }
         }
     }
     g.finish();

@@ -15,6 +15,7 @@
 //!
 //! A new landmark is the inverse of the measurement with `Σ = H⁻¹ Q H⁻ᵀ`.
 
+use crate::ekf_lanes::{self, LANES};
 use crate::linalg::kalman_posterior_cov;
 use crate::pose::Pose2;
 use crate::sensor::{
@@ -58,7 +59,7 @@ impl EkfUpdater {
 
     /// One update in measurement model `M` with noise `q` (the 2D one in 2x2 matrices).
     #[inline(always)]
-    fn update<const D: usize, M: MeasurementModel<D>>(
+    pub(crate) fn update<const D: usize, M: MeasurementModel<D>>(
         q: &SMatrix<f64, D, D>,
         inp: &UpdateInput,
         needs: UpdateNeeds,
@@ -98,23 +99,43 @@ impl pulp::WithSimd for Batch<'_> {
     type Output = ();
 
     #[inline(always)]
-    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+    fn with_simd<S: pulp::Simd>(self, simd: S) {
         let (u, needs) = (self.ekf, self.needs);
         match u.kind {
-            // A constant noise is read, not built per update (the same bits either way).
-            LandmarkKind::RangeBearing2d if u.noise.range_per_m == 0.0 => {
-                for (i, o) in self.inputs.iter().zip(self.outputs.iter_mut()) {
-                    *o = EkfUpdater::update::<2, RangeBearingModel>(&u.q2, i, needs);
-                }
-            }
+            // Blocks of `LANES` updates at once ([`crate::ekf_lanes`]: the scalar update's
+            // bits), the lanes it leaves and the last few inputs one by one.
             LandmarkKind::RangeBearing2d => {
-                for (i, o) in self.inputs.iter().zip(self.outputs.iter_mut()) {
+                let rpm = u.noise.range_per_m;
+                let q_at = |z: &[f64; 3]| {
                     // `RangeBearingModel::noise` (`q2_at`), as an increment of the constant
                     // part: the same sums, and an instruction mix valgrind decodes.
-                    let g = u.noise.range_per_m * i.z[0];
+                    let g = rpm * z[0];
                     let mut q = u.q2;
                     q[(0, 0)] += g * g;
-                    *o = EkfUpdater::update::<2, RangeBearingModel>(&q, i, needs);
+                    q
+                };
+                let blocks = if S::F64_LANES == LANES {
+                    self.inputs.len() / LANES * LANES
+                } else {
+                    0
+                };
+                let (head_in, tail_in) = self.inputs.split_at(blocks);
+                let (head_out, tail_out) = self.outputs.split_at_mut(blocks);
+                for (i, o) in head_in
+                    .chunks_exact(LANES)
+                    .zip(head_out.chunks_exact_mut(LANES))
+                {
+                    let scalar = ekf_lanes::update_range_bearing(simd, &u.q2, rpm, i, o, needs);
+                    for l in (0..LANES).filter(|&l| scalar[l]) {
+                        o[l] = EkfUpdater::update::<2, RangeBearingModel>(
+                            &q_at(&i[l].z),
+                            &i[l],
+                            needs,
+                        );
+                    }
+                }
+                for (i, o) in tail_in.iter().zip(tail_out.iter_mut()) {
+                    *o = EkfUpdater::update::<2, RangeBearingModel>(&q_at(&i.z), i, needs);
                 }
             }
             LandmarkKind::Point3d => {

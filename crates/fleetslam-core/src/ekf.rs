@@ -57,6 +57,22 @@ impl EkfUpdater {
         self
     }
 
+    /// One 2D range-bearing update with the sensor's noise at the input's range.
+    #[inline(always)]
+    fn update_2d(&self, i: &UpdateInput, needs: UpdateNeeds) -> UpdateOutput {
+        let rpm = self.noise.range_per_m;
+        if rpm == 0.0 {
+            // A constant noise is read, not built per update.
+            return Self::update::<2, RangeBearingModel>(&self.q2, i, needs);
+        }
+        // `RangeBearingModel::noise` (`q2_at`), as an increment of the constant part: the
+        // same sums, and an instruction mix valgrind decodes.
+        let g = rpm * i.z[0];
+        let mut q = self.q2;
+        q[(0, 0)] += g * g;
+        Self::update::<2, RangeBearingModel>(&q, i, needs)
+    }
+
     /// One update in measurement model `M` with noise `q` (the 2D one in 2x2 matrices).
     #[inline(always)]
     pub(crate) fn update<const D: usize, M: MeasurementModel<D>>(
@@ -106,14 +122,6 @@ impl pulp::WithSimd for Batch<'_> {
             // bits), the lanes it leaves and the last few inputs one by one.
             LandmarkKind::RangeBearing2d => {
                 let rpm = u.noise.range_per_m;
-                let q_at = |z: &[f64; 3]| {
-                    // `RangeBearingModel::noise` (`q2_at`), as an increment of the constant
-                    // part: the same sums, and an instruction mix valgrind decodes.
-                    let g = rpm * z[0];
-                    let mut q = u.q2;
-                    q[(0, 0)] += g * g;
-                    q
-                };
                 let blocks = if S::F64_LANES == LANES {
                     self.inputs.len() / LANES * LANES
                 } else {
@@ -127,15 +135,11 @@ impl pulp::WithSimd for Batch<'_> {
                 {
                     let scalar = ekf_lanes::update_range_bearing(simd, &u.q2, rpm, i, o, needs);
                     for l in (0..LANES).filter(|&l| scalar[l]) {
-                        o[l] = EkfUpdater::update::<2, RangeBearingModel>(
-                            &q_at(&i[l].z),
-                            &i[l],
-                            needs,
-                        );
+                        o[l] = u.update_2d(&i[l], needs);
                     }
                 }
                 for (i, o) in tail_in.iter().zip(tail_out.iter_mut()) {
-                    *o = EkfUpdater::update::<2, RangeBearingModel>(&q_at(&i.z), i, needs);
+                    *o = u.update_2d(i, needs);
                 }
             }
             LandmarkKind::Point3d => {

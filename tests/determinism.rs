@@ -233,15 +233,38 @@ fn the_instruction_set_changes_no_bit() {
         "this CPU lacks AVX2 or FMA: the dispatched and the baseline steps would be the same code"
     );
     // The baseline filter also takes the EKF without dispatch, so the 2D updates run one
-    // by one there instead of four at a time (`ekf_lanes`); 1.0 weighs by their
-    // likelihoods, 2.0 asks for the posteriors only.
-    let cases: [(LandmarkKind, bool, FastSlamVersion); 4] = [
-        (LandmarkKind::RangeBearing2d, true, FastSlamVersion::V2),
-        (LandmarkKind::RangeBearing2d, false, FastSlamVersion::V2),
-        (LandmarkKind::RangeBearing2d, true, FastSlamVersion::V1),
-        (LandmarkKind::Point3d, false, FastSlamVersion::V1),
+    // by one there instead of four at a time (`ekf_lanes`), as 2D 2.0's proposals do
+    // (`proposal_lanes`); 1.0 weighs by the updates' likelihoods, 2.0 asks for the
+    // posteriors only; the last case gates outliers (a tight bound, so that the proposal's
+    // gate takes some).
+    let cases: [(LandmarkKind, bool, FastSlamVersion, Option<f64>); 5] = [
+        (
+            LandmarkKind::RangeBearing2d,
+            true,
+            FastSlamVersion::V2,
+            None,
+        ),
+        (
+            LandmarkKind::RangeBearing2d,
+            false,
+            FastSlamVersion::V2,
+            None,
+        ),
+        (
+            LandmarkKind::RangeBearing2d,
+            true,
+            FastSlamVersion::V1,
+            None,
+        ),
+        (LandmarkKind::Point3d, false, FastSlamVersion::V1, None),
+        (
+            LandmarkKind::RangeBearing2d,
+            true,
+            FastSlamVersion::V2,
+            Some(1.0),
+        ),
     ];
-    for (kind, with_ids, version) in cases {
+    for (kind, with_ids, version, outlier) in cases {
         let sim = small_sim(2, 15.0, 11, |c| {
             c.kind = kind;
             c.with_ids = with_ids;
@@ -249,12 +272,19 @@ fn the_instruction_set_changes_no_bit() {
         let mut cfg = FilterConfig::from_header(&sim.log.header);
         cfg.particles = 60;
         cfg.version = version;
+        cfg.association_params.outlier = outlier;
         let ekf = EkfUpdater::new(cfg.landmark_kind, &cfg.sensor_noise).baseline_simd();
         let baseline = FastSlam::with_updater(cfg.clone(), Arc::new(ekf)).unwrap();
         let slam = FastSlam::new(cfg).unwrap();
         let (a, ta) = run_filter(slam, &sim.log);
         let (b, tb) = run_filter(baseline.baseline_simd(), &sim.log);
         assert!(a.stats.landmark_updates > 0 && a.stats.resamples > 0);
+        assert_eq!(
+            a.stats.outliers > 0,
+            outlier.is_some(),
+            "outliers {}",
+            a.stats.outliers
+        );
         assert_same_state(&a, &b);
         assert!(ta == tb, "trajectories differ ({kind:?}, ids {with_ids})");
     }

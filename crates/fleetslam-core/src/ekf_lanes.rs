@@ -26,81 +26,93 @@ pub(crate) const LANES: usize = 4;
 
 /// One number of [`LANES`] updates.
 #[derive(Clone, Copy)]
-struct F<S: Simd>(S, S::f64s);
+pub(crate) struct F<S: Simd>(S, S::f64s);
 
 /// Which lanes hold a condition.
 #[derive(Clone, Copy)]
-struct M<S: Simd>(S, S::m64s);
+pub(crate) struct M<S: Simd>(S, S::m64s);
 
 impl<S: Simd> F<S> {
     #[inline(always)]
-    fn load(s: S, v: [f64; LANES]) -> Self {
+    pub(crate) fn load(s: S, v: [f64; LANES]) -> Self {
         F(s, pulp::bytemuck::cast(v))
     }
     #[inline(always)]
-    fn splat(s: S, v: f64) -> Self {
+    pub(crate) fn splat(s: S, v: f64) -> Self {
         F(s, s.splat_f64s(v))
     }
     #[inline(always)]
-    fn get(self) -> [f64; LANES] {
+    pub(crate) fn get(self) -> [f64; LANES] {
         pulp::bytemuck::cast(self.1)
     }
     #[inline(always)]
-    fn c(self, v: f64) -> Self {
+    pub(crate) fn c(self, v: f64) -> Self {
         Self::splat(self.0, v)
     }
     #[inline(always)]
-    fn sqrt(self) -> Self {
+    pub(crate) fn sqrt(self) -> Self {
         F(self.0, self.0.sqrt_f64s(self.1))
     }
+    /// `|v|` for `v` not `-0` (which stays `-0`), by a comparison and a subtraction: pulp's
+    /// `abs` and `neg` go through mask operations that the compiler does not always inline
+    /// into the dispatched code (then a call each).
     #[inline(always)]
-    fn abs(self) -> Self {
-        F(self.0, self.0.abs_f64s(self.1))
+    pub(crate) fn abs_nonzero(self) -> Self {
+        let zero = self.c(0.0);
+        self.lt(zero).pick(zero - self, self)
+    }
+    /// `lo < v < hi`.
+    #[inline(always)]
+    pub(crate) fn within(self, lo: f64, hi: f64) -> M<S> {
+        self.gt(self.c(lo)).and(self.lt(self.c(hi)))
     }
     #[inline(always)]
-    fn lt(self, o: Self) -> M<S> {
+    pub(crate) fn lt(self, o: Self) -> M<S> {
         M(self.0, self.0.less_than_f64s(self.1, o.1))
     }
     #[inline(always)]
-    fn le(self, o: Self) -> M<S> {
+    pub(crate) fn le(self, o: Self) -> M<S> {
         M(self.0, self.0.less_than_or_equal_f64s(self.1, o.1))
     }
     #[inline(always)]
-    fn gt(self, o: Self) -> M<S> {
+    pub(crate) fn gt(self, o: Self) -> M<S> {
         M(self.0, self.0.greater_than_f64s(self.1, o.1))
     }
     #[inline(always)]
-    fn ge(self, o: Self) -> M<S> {
+    pub(crate) fn ge(self, o: Self) -> M<S> {
         M(self.0, self.0.greater_than_or_equal_f64s(self.1, o.1))
-    }
-    #[inline(always)]
-    fn ne(self, o: Self) -> M<S> {
-        M(self.0, self.0.not_m64s(self.0.equal_f64s(self.1, o.1)))
     }
     /// Normal and finite.
     #[inline(always)]
-    fn normal(self) -> M<S> {
-        self.abs().ge(self.c(f64::MIN_POSITIVE)).and(self.finite())
+    pub(crate) fn normal(self) -> M<S> {
+        let (lo, hi) = (self.c(f64::MIN_POSITIVE), self.c(f64::MAX));
+        let positive = self.ge(lo).and(self.le(hi));
+        let negative = self.le(-lo).and(self.ge(-hi));
+        positive.or(negative)
     }
-    /// Finite: `|v| <= f64::MAX` (false for NaN).
+    /// Finite: `-f64::MAX <= v <= f64::MAX` (false for NaN).
     #[inline(always)]
-    fn finite(self) -> M<S> {
-        self.abs().le(self.c(f64::MAX))
+    pub(crate) fn finite(self) -> M<S> {
+        self.le(self.c(f64::MAX)).and(self.ge(self.c(-f64::MAX)))
     }
 }
 
 impl<S: Simd> M<S> {
     /// `if self { t } else { f }`, lane by lane.
     #[inline(always)]
-    fn pick(self, t: F<S>, f: F<S>) -> F<S> {
+    pub(crate) fn pick(self, t: F<S>, f: F<S>) -> F<S> {
         F(self.0, self.0.select_f64s(self.1, t.1, f.1))
     }
     #[inline(always)]
-    fn and(self, o: Self) -> Self {
+    pub(crate) fn and(self, o: Self) -> Self {
         M(self.0, self.0.and_m64s(self.1, o.1))
     }
     #[inline(always)]
-    fn get(self) -> [bool; LANES] {
+    pub(crate) fn or(self, o: Self) -> Self {
+        M(self.0, self.0.or_m64s(self.1, o.1))
+    }
+    #[inline(always)]
+    pub(crate) fn get(self) -> [bool; LANES] {
         let v: [u64; LANES] = pulp::bytemuck::cast(self.1);
         v.map(|b| b != 0)
     }
@@ -138,10 +150,11 @@ binop!(Div, div, div_f64s);
 
 impl<S: Simd> Neg for F<S> {
     type Output = Self;
-    /// The sign flipped, as the scalar `-v`.
+    /// The sign flipped, as the scalar `-v`: `v · (−1)` is exact for every `v` (zeros
+    /// included), and a plain product is inlined where pulp's `neg` may not be.
     #[inline(always)]
     fn neg(self) -> Self {
-        F(self.0, self.0.neg_f64s(self.1))
+        self * -1.0
     }
 }
 
@@ -237,10 +250,11 @@ fn atan_lanes<S: Simd>(a: F<S>) -> F<S> {
 /// sure to take its common path (`x` and `y` normal and finite, `|y/x|` within 2^±60,
 /// inside its bound of exponents at most 64 apart); the others' results are meaningless.
 #[inline(always)]
-fn atan2_lanes<S: Simd>(y: F<S>, x: F<S>) -> (F<S>, M<S>) {
+pub(crate) fn atan2_lanes<S: Simd>(y: F<S>, x: F<S>) -> (F<S>, M<S>) {
     const PI_LO: f64 = 1.224_646_799_147_353_2e-16;
     const RATIO: f64 = f64::from_bits((1023 + 60) << 52); // 2^60
-    let a = (y / x).abs();
+    // `|y/x|`; a zero ratio (its sign kept) fails the bound below.
+    let a = (y / x).abs_nonzero();
     let ok = x
         .normal()
         .and(y.normal())
@@ -260,14 +274,15 @@ fn atan2_lanes<S: Simd>(y: F<S>, x: F<S>) -> (F<S>, M<S>) {
 /// `a.rem_euclid(2π)`'s remainder is `a`, or `a ∓ 2π` (exact: Sterbenz), and which lanes
 /// were in that domain.
 #[inline(always)]
-fn wrap_lanes<S: Simd>(a: F<S>) -> (F<S>, M<S>) {
+pub(crate) fn wrap_lanes<S: Simd>(a: F<S>) -> (F<S>, M<S>) {
     const TAU: f64 = 2.0 * PI;
-    let m = a.abs();
-    let ok = m.lt(a.c(2.0 * TAU)).and(m.ne(a.c(TAU)));
+    // |a| < 4π but not 2π: three open intervals.
+    let below_tau = a.within(-TAU, TAU);
+    let ok = below_tau
+        .or(a.within(TAU, 2.0 * TAU))
+        .or(a.within(-2.0 * TAU, -TAU));
     let inside = a.gt(a.c(-PI)).and(a.le(a.c(PI)));
-    let r = m
-        .lt(a.c(TAU))
-        .pick(a, a.gt(a.c(0.0)).pick(a - TAU, a + TAU));
+    let r = below_tau.pick(a, a.gt(a.c(0.0)).pick(a - TAU, a + TAU));
     let r = r.lt(a.c(0.0)).pick(r + TAU, r);
     let r = r.gt(a.c(PI)).pick(r - TAU, r);
     (inside.pick(a, r), ok)

@@ -30,7 +30,7 @@
 
 pub mod config;
 pub mod ekf;
-mod ekf_lanes;
+pub(crate) mod ekf_lanes;
 pub mod filter;
 pub mod linalg;
 pub mod log;

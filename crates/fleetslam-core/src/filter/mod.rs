@@ -48,6 +48,7 @@
 mod association;
 mod gauss;
 mod proposal;
+mod proposal_lanes;
 mod snapshot;
 mod work_item;
 

@@ -117,6 +117,22 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
         mu[2] = wrap_angle(mu[2]);
         pc = kalman_posterior_cov(&pc, &k, &pht);
     }
+    finish_proposal(ctx, particle, mu, pc, dw, matched, rng)
+}
+
+/// The end of FastSLAM 2.0's proposal for the particle of index `particle` after its
+/// matched observations (`N(mu, pc)`, the log-weight increment `dw` of the others and the
+/// `matched` ones' mixture terms): the sightings' refinement, the checks, the draw.
+#[inline(always)]
+pub(super) fn finish_proposal(
+    ctx: &StepCtx<'_>,
+    particle: usize,
+    mut mu: Vector3<f64>,
+    mut pc: Matrix3<f64>,
+    mut dw: f64,
+    matched: MixtureLogSum,
+    rng: &mut Stream,
+) -> Option<(Pose2, f64)> {
     // With `sightings_in_proposal` (by default with unknown association), sightings of
     // other robots refine the proposal too: the other robot's position is a landmark whose
     // covariance is its pose covariance's position block.

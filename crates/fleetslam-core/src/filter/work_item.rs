@@ -4,17 +4,21 @@
 use super::association::{associate_record, covering_radius};
 use super::gauss::{compose_sandwich, sample_gaussian, upper3};
 use super::proposal::{
-    propose, sample_motion, scaled_increment, sighting_marginal, sighting_update,
+    finish_proposal, propose, sample_motion, scaled_increment, sighting_marginal, sighting_update,
 };
+use super::proposal_lanes::{LaneProposal, propose_lanes};
 use super::{Action, FilterStats, Particle, StepCtx};
 use crate::config::{Association, FastSlamVersion};
+use crate::ekf_lanes::LANES;
 use crate::map::Landmark;
+use crate::map::LandmarkMap;
 use crate::motion::{covariance_in_world_sc, scale_increment};
 use crate::pose::{Pose2, PositionHeading, wrap_angle};
+use crate::rng::Stream;
 use crate::sensor::{LandmarkKind, MeasurementModel, Point3Model, RangeBearingModel};
 use crate::stats::log_add_exp;
 use crate::updater::{UpdateInput, UpdateNeeds, UpdateOutput};
-use nalgebra::{Matrix3, SMatrix};
+use nalgebra::{Matrix2, Matrix3, SMatrix};
 use std::time::Instant;
 
 /// What phase 1 decided for each particle of a work item, for the phases after it.
@@ -85,14 +89,15 @@ impl pulp::WithSimd for ChunkWork<'_, '_, '_> {
     type Output = FilterStats;
 
     #[inline(always)]
-    fn with_simd<S: pulp::Simd>(self, _simd: S) -> FilterStats {
-        process_chunk_phases(self.ctx, self.chunk, self.headings)
+    fn with_simd<S: pulp::Simd>(self, simd: S) -> FilterStats {
+        process_chunk_phases(simd, self.ctx, self.chunk, self.headings)
     }
 }
 
 /// The phases of a work item (inlined into [`ChunkWork::with_simd`]).
 #[inline(always)]
-fn process_chunk_phases(
+fn process_chunk_phases<S: pulp::Simd>(
+    simd: S,
     ctx: &StepCtx<'_>,
     chunk: &mut Chunk<'_>,
     headings: &[PositionHeading],
@@ -111,10 +116,10 @@ fn process_chunk_phases(
     let defer = ctx.defer;
     let decided = match cfg.landmark_kind {
         LandmarkKind::RangeBearing2d => {
-            move_poses::<2, RangeBearingModel>(ctx, chunk, headings, defer, &mut stats)
+            move_poses::<2, RangeBearingModel, S>(simd, ctx, chunk, headings, defer, &mut stats)
         }
         LandmarkKind::Point3d => {
-            move_poses::<3, Point3Model>(ctx, chunk, headings, defer, &mut stats)
+            move_poses::<3, Point3Model, S>(simd, ctx, chunk, headings, defer, &mut stats)
         }
     };
     let observed = update_landmarks(ctx, chunk, &decided, &mut stats);
@@ -190,7 +195,8 @@ fn predict_motion(
 /// 1.0's motion sample), the record's association, and in 2.0 the weights from the
 /// proposal. Generic over the run's measurement model, which the caller picks.
 #[inline(always)]
-fn move_poses<const D: usize, M: MeasurementModel<D>>(
+fn move_poses<const D: usize, M: MeasurementModel<D>, S: pulp::Simd>(
+    simd: S,
     ctx: &StepCtx<'_>,
     c: &mut Chunk<'_>,
     headings: &[PositionHeading],
@@ -218,7 +224,104 @@ fn move_poses<const D: usize, M: MeasurementModel<D>>(
         .take(PREFETCH_SLOTS)
         .collect();
     let stages = c.particles.first().map_or(0, |p| p.map.prefetch_stages());
+    // 2D 2.0 proposals of `LANES` particles at once where the instruction set has that
+    // many f64 lanes ([`propose_lanes`]; the same bits as one by one).
+    let lanes = v2
+        && nobs > 0
+        && !defer
+        && M::KIND == LandmarkKind::RangeBearing2d
+        && S::F64_LANES == LANES;
+    let q2: Vec<Matrix2<f64>> = if lanes {
+        q.iter()
+            .map(|m| m.fixed_view::<2, 2>(0, 0).into_owned())
+            .collect()
+    } else {
+        Vec::new()
+    };
+    let mut done = 0;
     for i in 0..n {
+        if i < done {
+            continue;
+        }
+        if lanes && i + LANES <= n {
+            done = i + LANES;
+            let mut rngs: [Stream; LANES] =
+                std::array::from_fn(|l| ctx.streams.lane((c.base + i + l) as u64));
+            let mut prior = [(Pose2::default(), Matrix3::zeros()); LANES];
+            let mut incs = [Pose2::default(); LANES];
+            let mut prevs = [Pose2::default(); LANES];
+            let mut points = [false; LANES];
+            for l in 0..LANES {
+                let idx = i + l;
+                if !slots.is_empty() {
+                    prefetch_landmarks(c.particles, idx, &slots, stages);
+                }
+                let prev_cov = c.pose_covs[idx];
+                prevs[l] = c.poses[idx];
+                points[l] = prev_cov.iter().all(|v| *v == 0.0);
+                let sc = headings[idx].sc();
+                incs[l] = if calibrate {
+                    scaled_increment(ctx, &mut c.odometry_scales[idx], &mut rngs[l])
+                } else {
+                    ctx.inc
+                };
+                prior[l] = predict_motion(ctx, &prevs[l], &prev_cov, points[l], sc, &incs[l]);
+                c.pose_covs[idx] = [0.0; 6];
+                let (mean0, pc0) = &prior[l];
+                associate_record::<D, M>(
+                    ctx,
+                    &q,
+                    &c.particles[idx].map,
+                    mean0,
+                    pc0,
+                    &mut actions[idx * nobs..(idx + 1) * nobs],
+                    &mut best_ll[idx * nobs..(idx + 1) * nobs],
+                );
+            }
+            let mut acts = actions[i * nobs..(i + LANES) * nobs].chunks_mut(nobs);
+            let mut acts: [&mut [Action]; LANES] =
+                std::array::from_fn(|_| acts.next().expect("LANES particles' actions"));
+            let bll: [&[f64]; LANES] =
+                std::array::from_fn(|l| &best_ll[(i + l) * nobs..(i + l + 1) * nobs]);
+            let maps: [&LandmarkMap; LANES] = std::array::from_fn(|l| &c.particles[i + l].map);
+            let proposals = propose_lanes(simd, ctx, &q2, maps, &prior, &mut acts, bll);
+            for (l, proposal) in proposals.into_iter().enumerate() {
+                let idx = i + l;
+                let particle = c.base + idx;
+                let (mean0, pc0) = &prior[l];
+                let rng = &mut rngs[l];
+                let acts = &mut actions[idx * nobs..(idx + 1) * nobs];
+                let bll = &mut best_ll[idx * nobs..(idx + 1) * nobs];
+                let map = &c.particles[idx].map;
+                let proposed = match proposal {
+                    LaneProposal::Refined {
+                        mu,
+                        pc,
+                        dw,
+                        matched,
+                    } => finish_proposal(ctx, particle, mu, pc, dw, matched, rng),
+                    LaneProposal::Scalar => {
+                        associate_record::<D, M>(ctx, &q, map, mean0, pc0, acts, bll);
+                        propose::<D, M>(ctx, &q, map, particle, mean0, pc0, acts, bll, rng)
+                    }
+                };
+                if let Some((pose, dw)) = proposed {
+                    c.poses[idx] = pose;
+                    c.particles[idx].log_w += dw;
+                    weigh_in_update[idx] = false;
+                    continue;
+                }
+                stats.proposal_fallbacks += 1;
+                let pose = if points[l] {
+                    sample_motion(ctx, &prevs[l], &incs[l], rng)
+                } else {
+                    sample_gaussian(mean0, pc0, rng)
+                };
+                c.poses[idx] = pose;
+                associate_record::<D, M>(ctx, &q, map, &pose, &Matrix3::zeros(), acts, bll);
+            }
+            continue;
+        }
         if !slots.is_empty() {
             prefetch_landmarks(c.particles, i, &slots, stages);
         }

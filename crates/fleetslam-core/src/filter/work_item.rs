@@ -78,7 +78,8 @@ pub(super) fn process_chunk(
 /// inline (the trie's write walk, `LandmarkMap::for_each`, `libm::atan`, the updater's batch
 /// with its own dispatch) stays as it is. On the simulated speed log the dispatch took the
 /// filter's steps from 3,741 M to 3,518 M instructions, and the inlining to 3,406 M
-/// (README, session 28).
+/// (README, session 28). The token `simd` lets 2D 2.0 proposals run four particles to a
+/// vector ([`propose_lanes`]; README, session 29).
 struct ChunkWork<'a, 'b, 'c> {
     ctx: &'a StepCtx<'b>,
     chunk: &'a mut Chunk<'c>,
@@ -212,11 +213,12 @@ fn move_poses<const D: usize, M: MeasurementModel<D>, S: pulp::Simd>(
         .iter()
         .map(|o| M::noise(&cfg.sensor_noise, &o.z))
         .collect();
-    let mut actions = vec![Action::Ignore; n * nobs];
-    let mut best_ll = vec![f64::NEG_INFINITY; n * nobs];
-    let mut weigh_in_update = vec![true; n];
-    let v2 = cfg.version == FastSlamVersion::V2;
-    let calibrate = cfg.odometry_calibration.enabled();
+    let mut d = Decisions {
+        nobs,
+        actions: vec![Action::Ignore; n * nobs],
+        best_ll: vec![f64::NEG_INFINITY; n * nobs],
+        weigh_in_update: vec![true; n],
+    };
     let slots: Vec<usize> = ctx
         .obs
         .iter()
@@ -224,174 +226,242 @@ fn move_poses<const D: usize, M: MeasurementModel<D>, S: pulp::Simd>(
         .take(PREFETCH_SLOTS)
         .collect();
     let stages = c.particles.first().map_or(0, |p| p.map.prefetch_stages());
+    let shared = PhaseOne {
+        ctx,
+        q: &q,
+        headings,
+        slots: &slots,
+        stages,
+        defer,
+    };
     // 2D 2.0 proposals of `LANES` particles at once where the instruction set has that
     // many f64 lanes ([`propose_lanes`]; the same bits as one by one).
-    let lanes = v2
+    let lanes = cfg.version == FastSlamVersion::V2
         && nobs > 0
         && !defer
         && M::KIND == LandmarkKind::RangeBearing2d
         && S::F64_LANES == LANES;
-    let q2: Vec<Matrix2<f64>> = if lanes {
-        q.iter()
-            .map(|m| m.fixed_view::<2, 2>(0, 0).into_owned())
-            .collect()
-    } else {
-        Vec::new()
-    };
-    let mut done = 0;
-    for i in 0..n {
-        if i < done {
-            continue;
+    if !lanes {
+        for i in 0..n {
+            move_one::<D, M>(&shared, c, &mut d, stats, i);
         }
-        if lanes && i + LANES <= n {
-            done = i + LANES;
-            let mut rngs: [Stream; LANES] =
-                std::array::from_fn(|l| ctx.streams.lane((c.base + i + l) as u64));
-            let mut prior = [(Pose2::default(), Matrix3::zeros()); LANES];
-            let mut incs = [Pose2::default(); LANES];
-            let mut prevs = [Pose2::default(); LANES];
-            let mut points = [false; LANES];
-            for l in 0..LANES {
-                let idx = i + l;
-                if !slots.is_empty() {
-                    prefetch_landmarks(c.particles, idx, &slots, stages);
-                }
-                let prev_cov = c.pose_covs[idx];
-                prevs[l] = c.poses[idx];
-                points[l] = prev_cov.iter().all(|v| *v == 0.0);
-                let sc = headings[idx].sc();
-                incs[l] = if calibrate {
-                    scaled_increment(ctx, &mut c.odometry_scales[idx], &mut rngs[l])
-                } else {
-                    ctx.inc
-                };
-                prior[l] = predict_motion(ctx, &prevs[l], &prev_cov, points[l], sc, &incs[l]);
-                c.pose_covs[idx] = [0.0; 6];
-                let (mean0, pc0) = &prior[l];
-                associate_record::<D, M>(
-                    ctx,
-                    &q,
-                    &c.particles[idx].map,
-                    mean0,
-                    pc0,
-                    &mut actions[idx * nobs..(idx + 1) * nobs],
-                    &mut best_ll[idx * nobs..(idx + 1) * nobs],
-                );
-            }
-            let mut acts = actions[i * nobs..(i + LANES) * nobs].chunks_mut(nobs);
-            let mut acts: [&mut [Action]; LANES] =
-                std::array::from_fn(|_| acts.next().expect("LANES particles' actions"));
-            let bll: [&[f64]; LANES] =
-                std::array::from_fn(|l| &best_ll[(i + l) * nobs..(i + l + 1) * nobs]);
-            let maps: [&LandmarkMap; LANES] = std::array::from_fn(|l| &c.particles[i + l].map);
-            let proposals = propose_lanes(simd, ctx, &q2, maps, &prior, &mut acts, bll);
-            for (l, proposal) in proposals.into_iter().enumerate() {
-                let idx = i + l;
-                let particle = c.base + idx;
-                let (mean0, pc0) = &prior[l];
-                let rng = &mut rngs[l];
-                let acts = &mut actions[idx * nobs..(idx + 1) * nobs];
-                let bll = &mut best_ll[idx * nobs..(idx + 1) * nobs];
-                let map = &c.particles[idx].map;
-                let proposed = match proposal {
-                    LaneProposal::Refined {
-                        mu,
-                        pc,
-                        dw,
-                        matched,
-                    } => finish_proposal(ctx, particle, mu, pc, dw, matched, rng),
-                    LaneProposal::Scalar => {
-                        associate_record::<D, M>(ctx, &q, map, mean0, pc0, acts, bll);
-                        propose::<D, M>(ctx, &q, map, particle, mean0, pc0, acts, bll, rng)
-                    }
-                };
-                if let Some((pose, dw)) = proposed {
-                    c.poses[idx] = pose;
-                    c.particles[idx].log_w += dw;
-                    weigh_in_update[idx] = false;
-                    continue;
-                }
-                stats.proposal_fallbacks += 1;
-                let pose = if points[l] {
-                    sample_motion(ctx, &prevs[l], &incs[l], rng)
-                } else {
-                    sample_gaussian(mean0, pc0, rng)
-                };
-                c.poses[idx] = pose;
-                associate_record::<D, M>(ctx, &q, map, &pose, &Matrix3::zeros(), acts, bll);
-            }
-            continue;
-        }
-        if !slots.is_empty() {
-            prefetch_landmarks(c.particles, i, &slots, stages);
-        }
-        let p = &mut c.particles[i];
-        let prev = c.poses[i];
-        let prev_cov = c.pose_covs[i];
-        // The particle's index in the filter, which keys its random stream of this step (32
-        // bytes, a few dozen instructions to seed) and its entries in other robots' lists.
-        let particle = c.base + i;
-        let point = prev_cov.iter().all(|v| *v == 0.0);
-        let sc = headings[i].sc();
-        if defer {
-            // Nothing is drawn (the scales' walk waits for a record that samples), so the
-            // particle's stream is not set up. Most such records carry no sighting either:
-            // the prediction stands, and the particle (its weight, its map) is not touched.
-            let inc = if calibrate {
-                scale_increment(&ctx.inc, c.odometry_scales[i])
-            } else {
-                ctx.inc
-            };
-            let (mean0, pc0) = predict_motion(ctx, &prev, &prev_cov, point, sc, &inc);
-            if ctx.sightings.is_empty() {
-                c.poses[i] = mean0;
-                c.pose_covs[i] = upper3(&pc0);
-            } else {
-                let (pose, pc, dw) = sighting_update(ctx, particle, mean0, pc0);
-                c.poses[i] = pose;
-                c.pose_covs[i] = upper3(&pc);
-                p.log_w += dw;
-            }
-            continue;
-        }
-        let rng = &mut ctx.streams.lane(particle as u64);
+        return d;
+    }
+    let q2: Vec<Matrix2<f64>> = q
+        .iter()
+        .map(|m| m.fixed_view::<2, 2>(0, 0).into_owned())
+        .collect();
+    let blocks = n / LANES * LANES;
+    for i in (0..blocks).step_by(LANES) {
+        move_block::<D, M, S>(simd, &shared, &q2, c, &mut d, stats, i);
+    }
+    for i in blocks..n {
+        move_one::<D, M>(&shared, c, &mut d, stats, i);
+    }
+    d
+}
+
+/// What phase 1's particles share.
+struct PhaseOne<'a, 'b, const D: usize> {
+    ctx: &'a StepCtx<'b>,
+    /// Each observation's measurement noise.
+    q: &'a [SMatrix<f64, D, D>],
+    headings: &'a [PositionHeading],
+    /// The prefetched slots and the trie walk's stages ([`prefetch_landmarks`]).
+    slots: &'a [usize],
+    stages: u32,
+    /// 2.0's deferred sampling on this record.
+    defer: bool,
+}
+
+/// Phase 1 for particle `i` of the work item.
+#[inline(always)]
+fn move_one<const D: usize, M: MeasurementModel<D>>(
+    sh: &PhaseOne<'_, '_, D>,
+    c: &mut Chunk<'_>,
+    d: &mut Decisions,
+    stats: &mut FilterStats,
+    i: usize,
+) {
+    let PhaseOne {
+        ctx,
+        q,
+        headings,
+        slots,
+        stages,
+        defer,
+    } = *sh;
+    let nobs = d.nobs;
+    let v2 = ctx.cfg.version == FastSlamVersion::V2;
+    let calibrate = ctx.cfg.odometry_calibration.enabled();
+    let (actions, best_ll, weigh_in_update) =
+        (&mut d.actions, &mut d.best_ll, &mut d.weigh_in_update);
+    if !slots.is_empty() {
+        prefetch_landmarks(c.particles, i, slots, stages);
+    }
+    let p = &mut c.particles[i];
+    let prev = c.poses[i];
+    let prev_cov = c.pose_covs[i];
+    // The particle's index in the filter, which keys its random stream of this step (32
+    // bytes, a few dozen instructions to seed) and its entries in other robots' lists.
+    let particle = c.base + i;
+    let point = prev_cov.iter().all(|v| *v == 0.0);
+    let sc = headings[i].sc();
+    if defer {
+        // Nothing is drawn (the scales' walk waits for a record that samples), so the
+        // particle's stream is not set up. Most such records carry no sighting either:
+        // the prediction stands, and the particle (its weight, its map) is not touched.
         let inc = if calibrate {
-            scaled_increment(ctx, &mut c.odometry_scales[i], rng)
+            scale_increment(&ctx.inc, c.odometry_scales[i])
         } else {
             ctx.inc
         };
         let (mean0, pc0) = predict_motion(ctx, &prev, &prev_cov, point, sc, &inc);
-        let acts = &mut actions[i * nobs..(i + 1) * nobs];
-        let bll = &mut best_ll[i * nobs..(i + 1) * nobs];
-        c.pose_covs[i] = [0.0; 6];
-        if v2 && nobs > 0 {
-            associate_record::<D, M>(ctx, &q, &p.map, &mean0, &pc0, acts, bll);
-            if let Some((pose, dw)) =
-                propose::<D, M>(ctx, &q, &p.map, particle, &mean0, &pc0, acts, bll, rng)
-            {
-                c.poses[i] = pose;
-                p.log_w += dw;
-                weigh_in_update[i] = false;
-                continue;
-            }
-            stats.proposal_fallbacks += 1;
-        }
-        let pose = if point {
-            sample_motion(ctx, &prev, &inc, rng)
+        if ctx.sightings.is_empty() {
+            c.poses[i] = mean0;
+            c.pose_covs[i] = upper3(&pc0);
         } else {
-            sample_gaussian(&mean0, &pc0, rng)
-        };
-        c.poses[i] = pose;
-        if nobs > 0 {
-            associate_record::<D, M>(ctx, &q, &p.map, &pose, &Matrix3::zeros(), acts, bll);
+            let (pose, pc, dw) = sighting_update(ctx, particle, mean0, pc0);
+            c.poses[i] = pose;
+            c.pose_covs[i] = upper3(&pc);
+            p.log_w += dw;
         }
+        return;
     }
+    let rng = &mut ctx.streams.lane(particle as u64);
+    let inc = if calibrate {
+        scaled_increment(ctx, &mut c.odometry_scales[i], rng)
+    } else {
+        ctx.inc
+    };
+    let (mean0, pc0) = predict_motion(ctx, &prev, &prev_cov, point, sc, &inc);
+    let acts = &mut actions[i * nobs..(i + 1) * nobs];
+    let bll = &mut best_ll[i * nobs..(i + 1) * nobs];
+    c.pose_covs[i] = [0.0; 6];
+    if v2 && nobs > 0 {
+        associate_record::<D, M>(ctx, q, &p.map, &mean0, &pc0, acts, bll);
+        if let Some((pose, dw)) =
+            propose::<D, M>(ctx, q, &p.map, particle, &mean0, &pc0, acts, bll, rng)
+        {
+            c.poses[i] = pose;
+            p.log_w += dw;
+            weigh_in_update[i] = false;
+            return;
+        }
+        stats.proposal_fallbacks += 1;
+    }
+    let pose = if point {
+        sample_motion(ctx, &prev, &inc, rng)
+    } else {
+        sample_gaussian(&mean0, &pc0, rng)
+    };
+    c.poses[i] = pose;
+    if nobs > 0 {
+        associate_record::<D, M>(ctx, q, &p.map, &pose, &Matrix3::zeros(), acts, bll);
+    }
+}
 
-    Decisions {
-        nobs,
-        actions,
-        best_ll,
-        weigh_in_update,
+/// Phase 1 for the [`LANES`] particles from `i` on, their 2.0 proposals (2D) in vectors of
+/// `simd` ([`propose_lanes`]): each particle's motion and association first, then the
+/// proposals together, then each particle's draw (or the scalar proposal for a lane that
+/// left the vectors' common path, and 1.0's proposal for a degenerate one).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn move_block<const D: usize, M: MeasurementModel<D>, S: pulp::Simd>(
+    simd: S,
+    sh: &PhaseOne<'_, '_, D>,
+    q2: &[Matrix2<f64>],
+    c: &mut Chunk<'_>,
+    d: &mut Decisions,
+    stats: &mut FilterStats,
+    i: usize,
+) {
+    let PhaseOne {
+        ctx,
+        q,
+        headings,
+        slots,
+        stages,
+        ..
+    } = *sh;
+    let nobs = d.nobs;
+    let calibrate = ctx.cfg.odometry_calibration.enabled();
+    let (actions, best_ll, weigh_in_update) =
+        (&mut d.actions, &mut d.best_ll, &mut d.weigh_in_update);
+    let mut rngs: [Stream; LANES] =
+        std::array::from_fn(|l| ctx.streams.lane((c.base + i + l) as u64));
+    let mut prior = [(Pose2::default(), Matrix3::zeros()); LANES];
+    let mut incs = [Pose2::default(); LANES];
+    let mut prevs = [Pose2::default(); LANES];
+    let mut points = [false; LANES];
+    for l in 0..LANES {
+        let idx = i + l;
+        if !slots.is_empty() {
+            prefetch_landmarks(c.particles, idx, slots, stages);
+        }
+        let prev_cov = c.pose_covs[idx];
+        prevs[l] = c.poses[idx];
+        points[l] = prev_cov.iter().all(|v| *v == 0.0);
+        let sc = headings[idx].sc();
+        incs[l] = if calibrate {
+            scaled_increment(ctx, &mut c.odometry_scales[idx], &mut rngs[l])
+        } else {
+            ctx.inc
+        };
+        prior[l] = predict_motion(ctx, &prevs[l], &prev_cov, points[l], sc, &incs[l]);
+        c.pose_covs[idx] = [0.0; 6];
+        let (mean0, pc0) = &prior[l];
+        associate_record::<D, M>(
+            ctx,
+            q,
+            &c.particles[idx].map,
+            mean0,
+            pc0,
+            &mut actions[idx * nobs..(idx + 1) * nobs],
+            &mut best_ll[idx * nobs..(idx + 1) * nobs],
+        );
+    }
+    let mut acts = actions[i * nobs..(i + LANES) * nobs].chunks_mut(nobs);
+    let mut acts: [&mut [Action]; LANES] =
+        std::array::from_fn(|_| acts.next().expect("LANES particles' actions"));
+    let bll: [&[f64]; LANES] =
+        std::array::from_fn(|l| &best_ll[(i + l) * nobs..(i + l + 1) * nobs]);
+    let maps: [&LandmarkMap; LANES] = std::array::from_fn(|l| &c.particles[i + l].map);
+    let proposals = propose_lanes(simd, ctx, q2, maps, &prior, &mut acts, bll);
+    for (l, proposal) in proposals.into_iter().enumerate() {
+        let idx = i + l;
+        let particle = c.base + idx;
+        let (mean0, pc0) = &prior[l];
+        let rng = &mut rngs[l];
+        let acts = &mut actions[idx * nobs..(idx + 1) * nobs];
+        let bll = &mut best_ll[idx * nobs..(idx + 1) * nobs];
+        let map = &c.particles[idx].map;
+        let proposed = match proposal {
+            LaneProposal::Refined {
+                mu,
+                pc,
+                dw,
+                matched,
+            } => finish_proposal(ctx, particle, mu, pc, dw, matched, rng),
+            LaneProposal::Scalar => {
+                associate_record::<D, M>(ctx, q, map, mean0, pc0, acts, bll);
+                propose::<D, M>(ctx, q, map, particle, mean0, pc0, acts, bll, rng)
+            }
+        };
+        if let Some((pose, dw)) = proposed {
+            c.poses[idx] = pose;
+            c.particles[idx].log_w += dw;
+            weigh_in_update[idx] = false;
+            continue;
+        }
+        stats.proposal_fallbacks += 1;
+        let pose = if points[l] {
+            sample_motion(ctx, &prevs[l], &incs[l], rng)
+        } else {
+            sample_gaussian(mean0, pc0, rng)
+        };
+        c.poses[idx] = pose;
+        associate_record::<D, M>(ctx, q, map, &pose, &Matrix3::zeros(), acts, bll);
     }
 }
 

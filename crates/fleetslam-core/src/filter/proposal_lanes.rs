@@ -9,8 +9,8 @@
 //! observation (its landmark lookup, clutter terms, the mixture term, the outlier gate) stays
 //! scalar, lane by lane, and a lane takes an observation's refinement only where the scalar
 //! proposal would. A lane whose numbers leave the common path of the vector `atan` or wrap
-//! is redone whole by the scalar proposal. `tests/determinism.rs::
-//! the_instruction_set_changes_no_bit` compares whole runs with the baseline (scalar) path.
+//! is redone whole by the scalar proposal. The test `the_instruction_set_changes_no_bit`
+//! (`tests/determinism.rs`) compares whole runs with the baseline (scalar) path.
 
 use super::{Action, StepCtx};
 use crate::ekf_lanes::{F, LANES, M, atan2_lanes, wrap_lanes};
@@ -41,8 +41,8 @@ fn mask<S: Simd>(s: S, b: [bool; LANES]) -> M<S> {
     F::load(s, b.map(|v| if v { 1.0 } else { 0.0 })).gt(F::splat(s, 0.0))
 }
 
-/// The proposal of `LANES` particles (their maps, predicted pose Gaussians `N(mean0[l],
-/// pc0[l])`, actions and best likelihoods by observation) with the observations' noises
+/// The proposal of `LANES` particles (their maps, predicted pose Gaussians `mean0[l] =
+/// (mean, covariance)`, actions and best likelihoods by observation) with the observations' noises
 /// `q`, in vectors of `simd` (which must hold [`LANES`] f64 lanes). Actions change as in
 /// the scalar proposal (a lane left to the scalar proposal needs its association again).
 #[allow(clippy::too_many_arguments)]

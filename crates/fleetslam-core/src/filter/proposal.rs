@@ -6,7 +6,7 @@ use super::gauss::{cholesky_psd, normal3, sym3};
 use super::{Action, StepCtx};
 use crate::config::OdometryCalibration;
 use crate::linalg::{kalman_posterior_cov, mul, mul_t, sandwich};
-use crate::map::LandmarkMap;
+use crate::map::{Landmark, LandmarkMap};
 use crate::motion::scale_increment;
 use crate::pose::{Pose2, wrap_angle};
 use crate::rng::{LANE_CALIBRATION, Stream, stream};
@@ -44,6 +44,41 @@ pub(super) fn sighting_marginal(
     ll.is_finite().then_some((ll, hx, s_inv, nu))
 }
 
+/// The landmark of `map` that the proposal refines a pose by for an observation the
+/// association gave action `act`, or `None` with the observation's term of the log-weight
+/// added to `dw`: clutter (density `clutter`) for a new landmark or an outlier, the mixture
+/// of its best likelihood `best_ll` and clutter for an ambiguous one or one the association
+/// made new. With known ids the association leaves the lookup to the proposal: an id the map
+/// does not hold yet starts a landmark (`act` becomes `New`, weighed as clutter). The scalar
+/// proposal and the lanes' ([`super::proposal_lanes`]) share it.
+#[inline(always)]
+pub(super) fn matched_landmark<'m>(
+    map: &'m LandmarkMap,
+    act: &mut Action,
+    best_ll: f64,
+    clutter: f64,
+    dw: &mut f64,
+) -> Option<&'m Landmark> {
+    match *act {
+        Action::Update(s) => {
+            let lm = map.get(s);
+            if lm.is_none() {
+                *act = Action::New(Some(s));
+                *dw += clutter;
+            }
+            lm
+        }
+        Action::New(Some(_)) | Action::Outlier => {
+            *dw += clutter;
+            None
+        }
+        Action::New(None) | Action::Ignore => {
+            *dw += log_add_exp(best_ll, clutter);
+            None
+        }
+    }
+}
+
 /// FastSLAM 2.0's proposal for the particle of index `particle`, whose map is `map`: the motion prediction `N(mean0, pc)` refined by
 /// each observation the association matched, and with `sightings_in_proposal` each sighting
 /// of another robot (a Kalman update of the pose per observation), then sampled. Returns the sampled pose and the particle's log-weight increment, the sum of
@@ -73,25 +108,10 @@ pub(super) fn propose<const D: usize, M: MeasurementModel<D>>(
     // The matched observations' mixture terms, with one logarithm for the record.
     let mut matched = MixtureLogSum::default();
     for (j, o) in ctx.obs.iter().enumerate() {
-        let landmark = match acts[j] {
-            Action::Update(s) => s,
-            Action::New(Some(_)) | Action::Outlier => {
-                dw += o.clutter;
-                continue;
-            }
-            Action::New(None) | Action::Ignore => {
-                dw += log_add_exp(best_ll[j], o.clutter);
-                continue;
-            }
-        };
-        let pose = Pose2::new(mu[0], mu[1], mu[2]);
-        // With known ids the association leaves the lookup to this loop: an id the map does
-        // not hold yet starts a landmark (weighed as clutter, as `New` is above).
-        let Some(lm) = map.get(landmark) else {
-            acts[j] = Action::New(Some(landmark));
-            dw += o.clutter;
+        let Some(lm) = matched_landmark(map, &mut acts[j], best_ll[j], o.clutter, &mut dw) else {
             continue;
         };
+        let pose = Pose2::new(mu[0], mu[1], mu[2]);
         let Some((zhat, hm, hx)) = M::predict(&pose, &lm.gaussian.mean) else {
             acts[j] = Action::Outlier;
             dw += o.clutter;

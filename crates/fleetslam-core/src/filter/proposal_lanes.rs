@@ -12,11 +12,12 @@
 //! is redone whole by the scalar proposal. The test `the_instruction_set_changes_no_bit`
 //! (`tests/determinism.rs`) compares whole runs with the baseline (scalar) path.
 
+use super::proposal::matched_landmark;
 use super::{Action, StepCtx};
 use crate::ekf_lanes::{F, LANES, M, atan2_lanes, wrap_lanes};
 use crate::map::LandmarkMap;
 use crate::pose::Pose2;
-use crate::stats::{MixtureLogSum, log_add_exp};
+use crate::stats::MixtureLogSum;
 use nalgebra::{Matrix2, Matrix3, Vector3};
 use pulp::Simd;
 
@@ -91,22 +92,16 @@ pub(super) fn propose_lanes<S: Simd>(
             if scalar[l] {
                 continue;
             }
-            match acts[l][j] {
-                Action::Update(s) => match maps[l].get(s) {
-                    Some(m) => {
-                        let (g, c) = (&m.gaussian.mean, &m.gaussian.cov);
-                        lm[l] = [g[0], g[1], c[0], c[1], c[3]];
-                        active[l] = true;
-                    }
-                    None => {
-                        acts[l][j] = Action::New(Some(s));
-                        dw[l] += o.clutter;
-                    }
-                },
-                Action::New(Some(_)) | Action::Outlier => dw[l] += o.clutter,
-                Action::New(None) | Action::Ignore => {
-                    dw[l] += log_add_exp(best_ll[l][j], o.clutter)
-                }
+            if let Some(m) = matched_landmark(
+                maps[l],
+                &mut acts[l][j],
+                best_ll[l][j],
+                o.clutter,
+                &mut dw[l],
+            ) {
+                let (g, c) = (&m.gaussian.mean, &m.gaussian.cov);
+                lm[l] = [g[0], g[1], c[0], c[1], c[3]];
+                active[l] = true;
             }
         }
         if !active.contains(&true) {

@@ -521,7 +521,12 @@ fn main() {
                     run_log(&mut slam, log, TrajectoryEstimate::Mean, |_, _| {}).expect("run");
                 let obs: usize = log.records.iter().map(|r| r.landmarks.len()).sum();
                 let per = |n: usize| out.metrics.wall_time_s * 1e9 / (particles * n) as f64;
-                (out.metrics.wall_time_s, per(log.records.len()), per(obs))
+                (
+                    out.metrics.wall_time_s,
+                    per(log.records.len()),
+                    per(obs),
+                    state_digest(&slam),
+                )
             };
             let sim = simulate(&speed_scenario(seed)).expect("valid simulation");
             let obs: usize = sim.log.records.iter().map(|r| r.landmarks.len()).sum();
@@ -529,11 +534,11 @@ fn main() {
             // profiler such as callgrind).
             let counts = particles.map_or(vec![100, 1000], |n| vec![n]);
             for &particles in &counts {
-                let (wall, per_record, per_obs) = timed(&sim.log, particles);
+                let (wall, per_record, per_obs, digest) = timed(&sim.log, particles);
                 println!(
                     "simulated, known ids, {} records, {:.1} observations per record, \
                      {particles} particles: {wall:.2} s, {per_record:.0} ns per particle and \
-                     record, {per_obs:.0} ns per particle and observation",
+                     record, {per_obs:.0} ns per particle and observation; state {digest:016x}",
                     sim.log.records.len(),
                     obs as f64 / sim.log.records.len() as f64,
                 );
@@ -542,11 +547,11 @@ fn main() {
                 return;
             }
             let imp = mrclam(&dataset, false, duration, odometry_delay);
-            let (wall, per_record, per_obs) = timed(&imp.log, 1000);
+            let (wall, per_record, per_obs, digest) = timed(&imp.log, 1000);
             println!(
                 "MRCLAM Dataset 6, known ids, 1000 particles: {:.0} s of data in {wall:.2} s, \
                  {:.0} times real time; {per_record:.0} ns per particle and record, \
-                 {per_obs:.0} per particle and observation",
+                 {per_obs:.0} per particle and observation; state {digest:016x}",
                 span(&imp.log),
                 span(&imp.log) / wall,
             );
@@ -600,10 +605,10 @@ fn main() {
                 &VictoriaOptions::default(),
             )
             .expect("import Victoria Park");
-            let (wall, _, per_obs) = timed(&vp.log, 100);
+            let (wall, _, per_obs, digest) = timed(&vp.log, 100);
             println!(
                 "Victoria Park, unknown association, 100 particles: {:.0} s of data in \
-                 {wall:.2} s, {per_obs:.0} ns per particle and observation",
+                 {wall:.2} s, {per_obs:.0} ns per particle and observation; state {digest:016x}",
                 span(&vp.log)
             );
         }
@@ -731,6 +736,20 @@ fn drift_windows(estimate: &Truth, truth: &Truth, w: f64) {
 
 /// The simulated log of `speed`: 3 robots among 60 landmarks with the default sensor (6 m,
 /// 180°), so that records hold 6 or more observations on average (known ids), 120 s.
+/// A 64-bit FNV-1a hash of the filter's state as its snapshot writes it in JSON (robots,
+/// particles with their maps, known ids, step, effective sample size; every number to the
+/// bit: `serde_json` writes the shortest text that reads back to the same `f64`), without
+/// the statistics (which hold timings), so that two builds or two machines can be checked
+/// for the same bits by command.
+fn state_digest(slam: &FastSlam) -> u64 {
+    let s = slam.snapshot();
+    let state = (&s.robots, &s.particles, &s.known_slots, s.step, s.ess);
+    let json = serde_json::to_vec(&state).expect("a snapshot encodes");
+    json.iter().fold(0xcbf2_9ce4_8422_2325, |h, &b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
+    })
+}
+
 fn speed_scenario(seed: u64) -> SimConfig {
     SimConfig {
         seed,

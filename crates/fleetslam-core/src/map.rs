@@ -47,12 +47,37 @@ use std::sync::Arc;
 /// write).
 type CowArc<T> = triomphe::Arc<T>;
 
+/// The value behind `a` for writing, copied first if another handle shares it:
+/// `CowArc::make_mut` with its common case (the map alone holds the node: every write after
+/// the first on a path in a step) inlined into the walk and the copy out of line. As a call,
+/// `make_mut` cost about 20 instructions per trie level of every landmark write (README,
+/// session 30).
+#[inline(always)]
+fn own<T: Clone>(a: &mut CowArc<T>) -> &mut T {
+    if !a.is_unique() {
+        copy_shared(a);
+    }
+    CowArc::get_mut(a).expect("a copy is held by this handle alone")
+}
+
+/// Replaces the shared value behind `a` with a copy of its own.
+#[cold]
+#[inline(never)]
+fn copy_shared<T: Clone>(a: &mut CowArc<T>) {
+    *a = CowArc::new(T::clone(a));
+}
+
 /// Side of a cell of the spatial index [m]. The index does not change results, only speed:
-/// a query visits the cells its disc overlaps, so cells of about the association radius keep
-/// a query to a few cells. Victoria Park (association radii of several metres, about 275
-/// landmarks per particle) ran its 100-particle filter in 6.3 s of CPU with 4 m cells and
-/// 7.2 s with 2 m (`filter_seeds victoria --seeds 1`, one thread).
-pub const INDEX_CELL: f64 = 4.0;
+/// a query looks up each cell its disc overlaps (a lookup in the persistent hash trie costs
+/// about 100 instructions) and visits the landmarks they hold, so larger cells mean fewer
+/// lookups and more landmarks visited. On Victoria Park (association radii of several
+/// metres, trees some 10 m apart) the filter's steps took 4,160 M instructions with 4 m
+/// cells, 3,575 M with 8 m, 3,469 M with 12 m and 3,482 M with 16 m (`RAYON_NUM_THREADS=1
+/// valgrind --tool=callgrind <filter_seeds> victoria --duration 200`; an earlier filter ran
+/// the whole park in 7.2 s of CPU with 2 m cells against 6.3 s with 4 m); on the association benchmark's 3 m lattice (`cargo bench -p
+/// fleetslam-core --bench association`) 8 m cells cost about the same as 4 m up to M = 10,000
+/// and up to 15 % more at 100,000 (README, session 30).
+pub const INDEX_CELL: f64 = 8.0;
 /// Landmarks whose ground-plane position variance (`cov_xx + cov_yy`) exceeds this [m²],
 /// or whose mean is not finite, are kept in a list that every query visits, because the
 /// association radius grows with a landmark's own variance: a landmark in a cell is then
@@ -129,6 +154,36 @@ fn cell(v: f64) -> i32 {
     (v / INDEX_CELL).floor() as i32
 }
 
+/// The spatial index: slots by [`Place`].
+type SpatialIndex = HashTrieMapSync<Place, Arc<[u32]>, foldhash::fast::FixedState>;
+
+/// Moves `slot` in `index` from place `a` to place `b` (`None`: not indexed).
+fn move_in_index(index: &mut SpatialIndex, slot: usize, a: Option<Place>, b: Option<Place>) {
+    if a == b {
+        return;
+    }
+    let slot = slot as u32;
+    if let Some(a) = a {
+        match index.get(&a) {
+            Some(l) if l.len() == 1 => {
+                index.remove_mut(&a);
+            }
+            Some(l) => {
+                let list: Arc<[u32]> = l.iter().copied().filter(|s| *s != slot).collect();
+                index.insert_mut(a, list);
+            }
+            None => debug_assert!(false, "slot {slot} missing from the index"),
+        }
+    }
+    if let Some(b) = b {
+        let list: Arc<[u32]> = match index.get(&b) {
+            Some(l) => l.iter().copied().chain([slot]).collect(),
+            None => Arc::new([slot]),
+        };
+        index.insert_mut(b, list);
+    }
+}
+
 /// A persistent map of landmark slots.
 #[derive(Debug, Clone, Default)]
 pub struct LandmarkMap {
@@ -139,7 +194,7 @@ pub struct LandmarkMap {
     slots: usize,
     live: usize,
     /// The spatial index: slots by [`Place`].
-    index: HashTrieMapSync<Place, Arc<[u32]>, foldhash::fast::FixedState>,
+    index: SpatialIndex,
     /// Existence values newer than their landmarks' `existence` field, by slot (sorted):
     /// the existence pass lowers the value of every landmark in view on every record, and
     /// writing each into the trie would copy its leaf (after a resample, its whole path).
@@ -296,37 +351,15 @@ impl LandmarkMap {
         let mut node = self.root.get_or_insert_with(|| Node::empty(height == 0));
         for level in (0..height).rev() {
             node = match node {
-                Node::Branch(c) => CowArc::make_mut(c)[Self::child(slot, level)]
-                    .get_or_insert_with(|| Node::empty(level == 0)),
+                Node::Branch(c) => {
+                    own(c)[Self::child(slot, level)].get_or_insert_with(|| Node::empty(level == 0))
+                }
                 Node::Leaf(_) => unreachable!("a leaf above the leaf level"),
             };
         }
         match node {
-            Node::Leaf(l) => &mut CowArc::make_mut(l)[slot & (LEAF - 1)],
+            Node::Leaf(l) => &mut own(l)[slot & (LEAF - 1)],
             Node::Branch(_) => unreachable!("a branch at the leaf level"),
-        }
-    }
-
-    fn index_insert(&mut self, place: Place, slot: usize) {
-        let slot = slot as u32;
-        let list: Arc<[u32]> = match self.index.get(&place) {
-            Some(l) => l.iter().copied().chain([slot]).collect(),
-            None => Arc::new([slot]),
-        };
-        self.index.insert_mut(place, list);
-    }
-
-    fn index_remove(&mut self, place: Place, slot: usize) {
-        let slot = slot as u32;
-        let Some(l) = self.index.get(&place) else {
-            debug_assert!(false, "slot {slot} missing from the index");
-            return;
-        };
-        if l.len() == 1 {
-            self.index.remove_mut(&place);
-        } else {
-            let list: Arc<[u32]> = l.iter().copied().filter(|s| *s != slot).collect();
-            self.index.insert_mut(place, list);
         }
     }
 
@@ -335,20 +368,12 @@ impl LandmarkMap {
         if self.unindexed {
             return;
         }
-        self.move_in_index(slot, old.map(Place::of), new.map(Place::of));
-    }
-
-    /// Moves `slot` in the index from place `a` to place `b` (`None`: not indexed).
-    fn move_in_index(&mut self, slot: usize, a: Option<Place>, b: Option<Place>) {
-        if a == b {
-            return;
-        }
-        if let Some(a) = a {
-            self.index_remove(a, slot);
-        }
-        if let Some(b) = b {
-            self.index_insert(b, slot);
-        }
+        move_in_index(
+            &mut self.index,
+            slot,
+            old.map(Place::of),
+            new.map(Place::of),
+        );
     }
 
     /// The existence values held apart, by slot (sorted).
@@ -361,9 +386,16 @@ impl LandmarkMap {
     }
 
     /// Removes and returns the pending existence value of `slot`, if it has one (its
-    /// landmark is being written whole).
-    #[inline]
+    /// landmark is being written whole). Inlined where the map holds none (every map under
+    /// known association), which is then one test.
+    #[inline(always)]
     fn take_pending(&mut self, slot: usize) -> Option<f64> {
+        self.pending.as_ref()?;
+        self.take_held(slot)
+    }
+
+    /// [`LandmarkMap::take_pending`] where the map holds values apart.
+    fn take_held(&mut self, slot: usize) -> Option<f64> {
         let i = self.pending_at(slot).ok()?;
         let v = CowArc::make_mut(self.pending.as_mut()?);
         let (_, e) = v.remove(i);
@@ -456,32 +488,56 @@ impl LandmarkMap {
     /// Rewrites the landmark in `slot` in place: `f` gets it with its `existence` field set to
     /// its current existence log-odds ([`LandmarkMap::current_existence`]; a value held apart
     /// is taken into the landmark) and changes what it will. `get` and `set` in one walk down
-    /// the trie, without copying the landmark out and back, for an update that reads the
-    /// landmark it replaces. The slot must hold a landmark (the caller read it in the same
-    /// step); an empty one is left empty, though the walk has then copied its path's shared
-    /// nodes.
+    /// the trie ([`LandmarkMap::get_mut`]), without copying the landmark out and back. An
+    /// empty slot is left as it is.
     #[inline(always)]
     pub fn update(&mut self, slot: usize, f: impl FnOnce(&mut Landmark)) {
-        debug_assert!(self.get(slot).is_some(), "slot {slot} holds no landmark");
+        if let Some(lm) = self.get_mut(slot) {
+            lm.write(f);
+        }
+    }
+
+    /// The landmark in `slot` opened for writing, `None` if the slot holds none: one walk
+    /// down the trie that copies the nodes of the slot's path where another map shares them
+    /// (nothing is copied for an empty slot; a branch may be where a lower level turns out
+    /// empty). The landmark's `existence` field is its current log-odds (a value held apart
+    /// is taken into it, which changes no [`LandmarkMap::existence`]). Read it with
+    /// [`LandmarkMut::get`] and change it with [`LandmarkMut::write`], which keeps the
+    /// spatial index in step; a handle dropped unwritten leaves the landmark as it was. The
+    /// filter reads each landmark it updates this way and writes its posterior after the
+    /// updater's batch: one walk per update instead of a read and a write (README, session 30).
+    #[inline(always)]
+    pub fn get_mut(&mut self, slot: usize) -> Option<LandmarkMut<'_>> {
         if slot >= self.slots {
-            return;
+            return None;
         }
         // Only present landmarks have held values (`set_existence`), so taking it before the
         // walk loses nothing.
         let held = self.take_pending(slot);
-        let indexed = !self.unindexed;
-        let Some(lm) = self.cell_mut(slot).as_mut() else {
-            return;
+        let mut node = self.root.as_mut()?;
+        for level in (0..self.height).rev() {
+            node = match node {
+                Node::Branch(c) => {
+                    let child = Self::child(slot, level);
+                    c[child].as_ref()?;
+                    own(c)[child].as_mut()?
+                }
+                Node::Leaf(_) => unreachable!("a leaf above the leaf level"),
+            };
+        }
+        let lm = match node {
+            Node::Leaf(l) => {
+                let cell = slot & (LEAF - 1);
+                l[cell].as_ref()?;
+                own(l)[cell].as_mut()?
+            }
+            Node::Branch(_) => unreachable!("a branch at the leaf level"),
         };
         if let Some(e) = held {
             lm.existence = e;
         }
-        let before = indexed.then(|| Place::of(lm));
-        f(lm);
-        if let Some(before) = before {
-            let after = Place::of(lm);
-            self.move_in_index(slot, Some(before), Some(after));
-        }
+        let index = (!self.unindexed).then(|| (&mut self.index, Place::of(lm)));
+        Some(LandmarkMut { lm, index, slot })
     }
 
     /// Removes the landmark in `slot`, leaving the slot empty.
@@ -566,6 +622,34 @@ impl LandmarkMap {
         Iter {
             stack,
             height: self.height,
+        }
+    }
+}
+
+/// A landmark of a map opened for writing ([`LandmarkMap::get_mut`]): its cell in the
+/// trie, whose path the map alone holds, and the map's spatial index with the landmark's
+/// place in it before the write (`None` for a map without an index).
+#[derive(Debug)]
+pub struct LandmarkMut<'a> {
+    lm: &'a mut Landmark,
+    index: Option<(&'a mut SpatialIndex, Place)>,
+    slot: usize,
+}
+
+impl LandmarkMut<'_> {
+    /// The landmark, its `existence` field current.
+    #[inline(always)]
+    pub fn get(&self) -> &Landmark {
+        self.lm
+    }
+
+    /// Changes the landmark through `f` and moves it in the spatial index if its place
+    /// changed.
+    #[inline(always)]
+    pub fn write(self, f: impl FnOnce(&mut Landmark)) {
+        f(self.lm);
+        if let Some((index, before)) = self.index {
+            move_in_index(index, self.slot, Some(before), Some(Place::of(self.lm)));
         }
     }
 }
@@ -795,8 +879,10 @@ mod tests {
         }
         let mut visited = 0;
         map.for_each_near(50.3, 50.3, 1.0, |_, _| visited += 1);
-        // The disc of 1 m lies in one cell of 4 m: its 16 landmarks on the 1 m lattice.
-        assert_eq!(visited, 16);
+        // The disc of 1 m lies in one cell (of 8 m: [48, 56) m in x and y): its landmarks
+        // on the 1 m lattice.
+        assert_eq!(visited, (INDEX_CELL * INDEX_CELL) as usize);
+        assert!(visited < 100, "not the map's 10,000");
         // A landmark too uncertain for a cell is visited by every query.
         map.push(at(-500.0, -500.0, 4.0));
         let mut wide = 0;
@@ -829,8 +915,10 @@ mod tests {
             n
         };
         assert_eq!(count(&plain), 39);
-        // The query's cell, [0, 4) m, holds the landmarks at x = 0 and 3.
-        assert_eq!(count(&indexed), 2);
+        // The query's cells hold the landmarks at x = 0, 3, ... below INDEX_CELL (8 m: 0, 3
+        // and 6).
+        assert_eq!(count(&indexed), (INDEX_CELL / 3.0).ceil() as usize);
+        assert!(count(&indexed) < 39);
         indexed.drop_index();
         assert!(indexed.index.is_empty());
         assert_eq!(count(&indexed), 39);
@@ -972,6 +1060,67 @@ mod tests {
             "untouched leaves stay shared"
         );
         assert_ne!(leaf_of(&shared, 150), leaf_of(&a, 150));
+    }
+
+    /// An opened landmark reads as `get` does with its current existence; unwritten it
+    /// changes nothing a reader sees; an empty slot opens nothing and copies no leaf; a write
+    /// moves the landmark in the index, as `set` would.
+    #[test]
+    fn get_mut_opens_one_landmark() {
+        let mut a = LandmarkMap::new();
+        for i in 0..200 {
+            a.push(at(i as f64, 0.0, 0.1));
+        }
+        a.remove(40);
+        a.set_existence(7, 0.5);
+        let shared = a.clone();
+        let leaf_of = |m: &LandmarkMap, slot: usize| m.get(slot).unwrap() as *const Landmark;
+        {
+            let got = a.get_mut(7).expect("slot 7 holds a landmark");
+            assert_eq!(got.get().existence, 0.5, "the held value");
+            assert_eq!(got.get().gaussian, shared.get(7).unwrap().gaussian);
+        }
+        assert_eq!(a, shared, "unwritten: the same map");
+        assert_eq!(a.existence(7), Some(0.5));
+        assert!(
+            a.pending().is_empty(),
+            "the held value went into the landmark"
+        );
+        assert!(a.get_mut(40).is_none(), "a removed landmark");
+        assert!(a.get_mut(200).is_none(), "beyond the slots");
+        assert_eq!(
+            leaf_of(&shared, 41),
+            leaf_of(&a, 41),
+            "opening an empty slot copies no leaf"
+        );
+        let mut b = a.clone();
+        a.get_mut(9)
+            .unwrap()
+            .write(|lm| lm.gaussian.mean = [30.0, 30.0, 0.0]);
+        b.set(
+            9,
+            Landmark {
+                gaussian: LandmarkGaussian {
+                    mean: [30.0, 30.0, 0.0],
+                    ..b.get(9).unwrap().gaussian
+                },
+                ..*b.get(9).unwrap()
+            },
+        );
+        assert_eq!(a, b);
+        for m in [&a, &b] {
+            let mut found = Vec::new();
+            m.for_each_near(30.0, 30.0, 0.5, |s, _| found.push(s));
+            assert_eq!(found, vec![9]);
+            found.clear();
+            m.for_each_near(9.0, 0.0, 0.5, |s, l| {
+                if (l.gaussian.mean[0] - 9.0).abs() < 0.5 {
+                    found.push(s);
+                }
+            });
+            assert!(found.is_empty(), "moved out of its old cell");
+        }
+        assert_eq!(shared.get(9).unwrap().gaussian.mean[0], 9.0);
     }
 
     /// Existence values held apart read back, survive copies, serialisation and equality as

@@ -10,8 +10,9 @@ use super::proposal_lanes::{LaneProposal, propose_lanes};
 use super::{Action, FilterStats, Particle, StepCtx};
 use crate::config::{Association, FastSlamVersion};
 use crate::ekf_lanes::LANES;
+use crate::log::SensorRange;
 use crate::map::Landmark;
-use crate::map::LandmarkMap;
+use crate::map::{LandmarkMap, LandmarkMut};
 use crate::motion::{covariance_in_world_sc, scale_increment};
 use crate::pose::{Pose2, PositionHeading, wrap_angle};
 use crate::rng::Stream;
@@ -19,6 +20,7 @@ use crate::sensor::{LandmarkKind, MeasurementModel, Point3Model, RangeBearingMod
 use crate::stats::log_add_exp;
 use crate::updater::{UpdateInput, UpdateNeeds, UpdateOutput};
 use nalgebra::{Matrix2, Matrix3, SMatrix};
+use std::f64::consts::PI;
 use std::time::Instant;
 
 /// What phase 1 decided for each particle of a work item, for the phases after it.
@@ -468,6 +470,12 @@ fn move_block<const D: usize, M: MeasurementModel<D>, S: pulp::Simd>(
 /// Phase 2: the landmarks, one updater batch per observation (in calls of at most
 /// `batch_size`), and in 1.0 the weights from the updates. Returns, with unknown
 /// association and observations, the slots each particle observed (updated or created).
+///
+/// Each landmark to update is opened for writing once ([`LandmarkMap::get_mut`]): its prior
+/// is read from the open cell and its posterior written into it after the batch, one trie
+/// walk per update. The landmarks an observation creates are put into their maps after the
+/// batch too (the open cells borrow the maps until then); a particle does one thing with
+/// each observation, so the order of its map's and weight's changes is as it was.
 #[inline(always)]
 fn update_landmarks(
     ctx: &StepCtx<'_>,
@@ -483,26 +491,22 @@ fn update_landmarks(
     let outlier = cfg.association_params.outlier;
     let mut inputs: Vec<UpdateInput> = Vec::with_capacity(n);
     let mut outputs: Vec<UpdateOutput> = Vec::with_capacity(n);
-    let mut who: Vec<(usize, usize, bool)> = Vec::with_capacity(n);
+    // The particles' new landmarks of an observation: (particle, slot if known, landmark).
+    let mut created: Vec<(usize, Option<usize>, Landmark)> = Vec::new();
+    // The open landmarks of an observation, reallocated per observation only in type (the
+    // borrows end with each observation; `recycle` keeps the allocation).
+    let mut open: Vec<Open<'_>> = Vec::with_capacity(n);
     let mut observed: Option<Vec<Vec<usize>>> =
         (cfg.association == Association::Unknown).then(|| vec![Vec::new(); n]);
     let a = &cfg.association_params;
     for (j, o) in ctx.obs.iter().enumerate() {
         inputs.clear();
-        who.clear();
+        created.clear();
+        let mut who = recycle(open);
         for (i, (p, &pose)) in chunk.particles.iter_mut().zip(&*chunk.poses).enumerate() {
             let mut action = d.action(i, j);
             let v1 = d.weigh_in_update[i];
             let mut weigh = v1;
-            // A known id the map does not hold yet is new (the association gives every id
-            // `Update` without looking it up; 2.0's proposal already made these `New`).
-            let prior = match action {
-                Action::Update(s) => p.map.get(s).map(|lm| &lm.gaussian),
-                _ => None,
-            };
-            if let (Action::Update(s), None) = (action, prior) {
-                action = Action::New(Some(s));
-            }
             // A known id seen twice in one record: the second sighting updates the landmark
             // the first one created.
             if let Action::New(Some(s)) = action
@@ -516,38 +520,36 @@ fn update_landmarks(
                 }
             }
             match action {
-                Action::Update(s) => {
-                    if let Some(&prior) = prior {
+                Action::Update(s) => match p.map.get_mut(s) {
+                    Some(lm) => {
                         inputs.push(UpdateInput {
-                            prior,
+                            prior: lm.get().gaussian,
                             pose,
                             z: o.z,
                         });
-                        who.push((i, s, weigh));
+                        who.push(Open {
+                            i,
+                            s,
+                            weigh,
+                            lm,
+                            log_w: &mut p.log_w,
+                        });
                     }
-                }
+                    // A known id the map does not hold yet is new (the association gives
+                    // every id `Update` without looking it up; 2.0's proposal already made
+                    // these `New`).
+                    None => {
+                        if v1 {
+                            p.log_w += log_add_exp(d.best_ll(i, j), o.clutter);
+                        }
+                        created.push((i, Some(s), new_landmark(ctx, &pose, o)));
+                    }
+                },
                 Action::New(slot) => {
-                    let g = ctx.updater.initialize(&pose, &o.z);
-                    let lm = Landmark {
-                        gaussian: g,
-                        id: o.id,
-                        existence: (a.existence_prior + a.existence_hit).min(a.existence_max),
-                        hits: 1,
-                    };
                     if v1 {
                         p.log_w += log_add_exp(d.best_ll(i, j), o.clutter);
                     }
-                    let s = match slot {
-                        Some(s) => {
-                            p.map.set(s, lm);
-                            s
-                        }
-                        None => p.map.push(lm),
-                    };
-                    if let Some(o) = &mut observed {
-                        o[i].push(s);
-                    }
-                    stats.landmarks_created += 1;
+                    created.push((i, slot, new_landmark(ctx, &pose, o)));
                 }
                 Action::Ignore => {
                     if v1 {
@@ -563,36 +565,34 @@ fn update_landmarks(
                 }
             }
         }
-        if inputs.is_empty() {
-            continue;
+        if !inputs.is_empty() {
+            outputs.clear();
+            outputs.resize(inputs.len(), UpdateOutput::default());
+            // The likelihood only when a particle is weighed by it or the outlier gate reads
+            // the Mahalanobis distance (FastSLAM 2.0 weighed the particles in its proposal).
+            let needs = if outlier.is_some() || who.iter().any(|w| w.weigh) {
+                UpdateNeeds::PosteriorAndLikelihood
+            } else {
+                UpdateNeeds::Posterior
+            };
+            let t0 = Instant::now();
+            for (i, o) in inputs
+                .chunks(cfg.batch_size)
+                .zip(outputs.chunks_mut(cfg.batch_size))
+            {
+                ctx.updater.update_batch(needs, i, o);
+            }
+            stats.update_nanos += t0.elapsed().as_nanos() as u64;
+            stats.landmark_updates += inputs.len() as u64;
         }
-        outputs.clear();
-        outputs.resize(inputs.len(), UpdateOutput::default());
-        // The likelihood only when a particle is weighed by it or the outlier gate reads the
-        // Mahalanobis distance (FastSLAM 2.0 weighed the particles in its proposal).
-        let needs = if outlier.is_some() || who.iter().any(|w| w.2) {
-            UpdateNeeds::PosteriorAndLikelihood
-        } else {
-            UpdateNeeds::Posterior
-        };
-        let t0 = Instant::now();
-        for (i, o) in inputs
-            .chunks(cfg.batch_size)
-            .zip(outputs.chunks_mut(cfg.batch_size))
-        {
-            ctx.updater.update_batch(needs, i, o);
-        }
-        stats.update_nanos += t0.elapsed().as_nanos() as u64;
-        stats.landmark_updates += inputs.len() as u64;
-        for (&(i, s, weigh), out) in who.iter().zip(&outputs) {
-            let p = &mut chunk.particles[i];
-            if weigh {
+        for (w, out) in who.drain(..).zip(&outputs) {
+            if w.weigh {
                 let ll = if out.log_likelihood.is_finite() {
                     out.log_likelihood
                 } else {
                     f64::NEG_INFINITY
                 };
-                p.log_w += log_add_exp(ll, o.clutter);
+                *w.log_w += log_add_exp(ll, o.clutter);
             }
             if outlier.is_some_and(|b| out.mahalanobis2.is_nan() || out.mahalanobis2 > b) {
                 stats.outliers += 1;
@@ -601,18 +601,66 @@ fn update_landmarks(
             if !out.posterior.is_finite() {
                 continue;
             }
-            p.map.update(s, |lm| {
+            w.lm.write(|lm| {
                 lm.gaussian = out.posterior;
                 lm.existence = (lm.existence + a.existence_hit).min(a.existence_max);
                 lm.hits += 1;
             });
             if let Some(o) = &mut observed {
+                o[w.i].push(w.s);
+            }
+        }
+        open = recycle(who);
+        for &(i, slot, lm) in &created {
+            let map = &mut chunk.particles[i].map;
+            let s = match slot {
+                Some(s) => {
+                    map.set(s, lm);
+                    s
+                }
+                None => map.push(lm),
+            };
+            if let Some(o) = &mut observed {
                 o[i].push(s);
             }
+            stats.landmarks_created += 1;
         }
     }
 
     observed
+}
+
+/// A landmark opened for its update in phase 2: particle `i`'s landmark in slot `s`, its
+/// cell, the particle's log-weight, and whether the update's likelihood weighs it.
+struct Open<'a> {
+    i: usize,
+    s: usize,
+    weigh: bool,
+    lm: LandmarkMut<'a>,
+    log_w: &'a mut f64,
+}
+
+/// An empty vector with `v`'s allocation for another lifetime of [`Open`] (the standard
+/// library collects a vector's `into_iter` into its own allocation when the element
+/// layouts agree).
+#[inline(always)]
+fn recycle<'b>(mut v: Vec<Open<'_>>) -> Vec<Open<'b>> {
+    v.clear();
+    v.into_iter()
+        .map(|_| unreachable!("the vector was cleared"))
+        .collect()
+}
+
+/// The landmark observation `o` creates, seen from `pose`.
+#[inline(always)]
+fn new_landmark(ctx: &StepCtx<'_>, pose: &Pose2, o: &super::Obs) -> Landmark {
+    let a = &ctx.cfg.association_params;
+    Landmark {
+        gaussian: ctx.updater.initialize(pose, &o.z),
+        id: o.id,
+        existence: (a.existence_prior + a.existence_hit).min(a.existence_max),
+        hits: 1,
+    }
 }
 
 /// Phase 3: sightings of other robots weigh each particle by the same mixture, with the
@@ -700,6 +748,88 @@ fn merge_close_landmarks(
     }
 }
 
+/// Relative width of the band around the edges of the sensor's view (its range, and its
+/// field as the cosine of the bearing) within which phase 5 decides whether a landmark is in
+/// view by the definition (`hypot` of the offset, `atan2` of the bearing) rather than by
+/// products (squared distance, the offset's dot product with the heading). The products'
+/// rounding (about 1e-15 of the distance) and the definition's (`atan2` and the wrap within
+/// an ulp of their results: about 3e-15 rad, plus an ulp of the heading) both lie far inside
+/// it, so outside the band the two decide alike: a speed setting that changes no result
+/// (the definition's `hypot` and `atan2` were 5 % of Victoria Park's instructions; README,
+/// session 30).
+const VIEW_EDGE_BAND: f64 = 1e-9;
+
+/// The sensor's view from a heading, for phase 5: whether a landmark at offset `(dx, dy)`
+/// from the robot lies within the range and the field of view.
+struct View {
+    max_range: f64,
+    r2: f64,
+    /// Half the field of view, and its cosine.
+    half: f64,
+    cos_half: f64,
+    theta: f64,
+    sin: f64,
+    cos: f64,
+}
+
+impl View {
+    #[inline(always)]
+    fn new(range: &SensorRange, theta: f64) -> Self {
+        let half = 0.5 * range.fov;
+        let (sin, cos) = theta.sin_cos();
+        Self {
+            max_range: range.max_range,
+            r2: range.max_range * range.max_range,
+            half,
+            cos_half: half.cos(),
+            theta,
+            sin,
+            cos,
+        }
+    }
+
+    /// The definition: within the range (`hypot`) and the field of view (the bearing's
+    /// `atan2`, wrapped, against half the field).
+    fn contains_by_definition(&self, dx: f64, dy: f64) -> bool {
+        dx.hypot(dy) < self.max_range && wrap_angle(dy.atan2(dx) - self.theta).abs() < self.half
+    }
+
+    /// The definition's decision by products, `None` within [`VIEW_EDGE_BAND`] of an edge of
+    /// the view (or for a NaN); `d2` is `dx² + dy²`.
+    #[inline(always)]
+    fn by_products(&self, dx: f64, dy: f64, d2: f64) -> Option<bool> {
+        if d2 > self.r2 * (1.0 + VIEW_EDGE_BAND) {
+            return Some(false);
+        }
+        let clear_of_the_range = d2 < self.r2 * (1.0 - VIEW_EDGE_BAND);
+        if !clear_of_the_range {
+            return None;
+        }
+        if self.half > PI {
+            // Every wrapped bearing lies within ±π.
+            return Some(true);
+        }
+        // |bearing| < half ⟺ cos(bearing) > cos(half), for half in (0, π].
+        let d = d2.sqrt();
+        let margin = dx * self.cos + dy * self.sin - d * self.cos_half;
+        if margin > VIEW_EDGE_BAND * d {
+            Some(true)
+        } else if margin < -VIEW_EDGE_BAND * d {
+            Some(false)
+        } else {
+            None
+        }
+    }
+
+    /// Whether the landmark is in view ([`View::contains_by_definition`], by products where
+    /// they decide).
+    #[inline(always)]
+    fn contains(&self, dx: f64, dy: f64, d2: f64) -> bool {
+        self.by_products(dx, dy, d2)
+            .unwrap_or_else(|| self.contains_by_definition(dx, dy))
+    }
+}
+
 /// Phase 5 (unknown association, with a sensor range): landmarks in the sensor's field of
 /// view that the record did not observe lose existence log-odds, and are removed below
 /// zero.
@@ -714,23 +844,20 @@ fn lower_existence_in_view(
     let Some(range) = &ctx.cfg.sensor_range else {
         return;
     };
+    let reach = covering_radius(range.max_range * range.max_range);
     for (i, (p, &pose)) in chunk.particles.iter_mut().zip(&*chunk.poses).enumerate() {
         let seen = &observed[i];
         let mut missed: Vec<usize> = Vec::new();
-        let reach = covering_radius(range.max_range * range.max_range);
+        let view = View::new(range, pose.theta);
         p.map.for_each_near(pose.x, pose.y, reach, |s, l| {
-            if seen.contains(&s) {
-                return;
-            }
             let dx = l.gaussian.mean[0] - pose.x;
             let dy = l.gaussian.mean[1] - pose.y;
-            // Beyond the covering radius it is out of range (the exact test is hypot).
-            if dx * dx + dy * dy > reach * reach {
+            // Beyond the covering radius it is out of range.
+            let d2 = dx * dx + dy * dy;
+            if d2 > reach * reach || seen.contains(&s) {
                 return;
             }
-            let d = dx.hypot(dy);
-            if d < range.max_range && wrap_angle(dy.atan2(dx) - pose.theta).abs() < 0.5 * range.fov
-            {
+            if view.contains(dx, dy, d2) {
                 missed.push(s);
             }
         });
@@ -747,5 +874,78 @@ fn lower_existence_in_view(
                 p.map.set_existence(s, e);
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn view(max_range: f64, fov: f64, theta: f64) -> View {
+        View::new(&SensorRange { max_range, fov }, theta)
+    }
+
+    proptest! {
+        /// Where the products decide, they decide as the definition does: landmarks
+        /// anywhere, and on the view's edges (the range, the field's two sides) to within a
+        /// few ulps, for fields from a sliver to all round and headings of any turn.
+        #[test]
+        fn the_view_by_products_is_the_definition(
+            max_range in 0.5f64..100.0,
+            fov in prop_oneof![0.01f64..6.2, Just(std::f64::consts::PI), Just(std::f64::consts::TAU), 6.3f64..7.0],
+            theta in -20.0f64..20.0,
+            edge in 0usize..4,
+            u in -1.0f64..1.0,
+            w in 0.0f64..1.2,
+            ulps in -8i64..8,
+        ) {
+            let v = view(max_range, fov, theta);
+            // A point at range `w · max_range` and bearing `u · half` off the heading; on the
+            // range edge, or on one side of the field, moved by `ulps`.
+            let nudge = |x: f64| f64::from_bits((x.to_bits() as i64 + ulps) as u64);
+            let (r, b) = match edge {
+                0 => (w * max_range, u * v.half),
+                1 => (nudge(max_range), u * v.half),
+                2 => (w * max_range, nudge(v.half)),
+                _ => (w * max_range, -nudge(v.half)),
+            };
+            let (dx, dy) = (r * (theta + b).cos(), r * (theta + b).sin());
+            let d2 = dx * dx + dy * dy;
+            if let Some(decided) = v.by_products(dx, dy, d2) {
+                prop_assert_eq!(decided, v.contains_by_definition(dx, dy), "{} {}", dx, dy);
+            }
+            prop_assert_eq!(v.contains(dx, dy, d2), v.contains_by_definition(dx, dy));
+        }
+    }
+
+    /// The products decide everything clear of the edges (so the definition's `hypot` and
+    /// `atan2` are rare), and leave the edges to the definition.
+    #[test]
+    fn the_products_decide_away_from_the_edges() {
+        let v = view(30.0, std::f64::consts::PI, 0.3);
+        let at = |r: f64, b: f64| {
+            let (dx, dy) = (r * (0.3 + b).cos(), r * (0.3 + b).sin());
+            v.by_products(dx, dy, dx * dx + dy * dy)
+        };
+        assert_eq!(at(10.0, 0.0), Some(true));
+        assert_eq!(at(29.9, 1.5), Some(true));
+        assert_eq!(at(30.1, 0.0), Some(false));
+        assert_eq!(at(10.0, 1.6), Some(false));
+        assert_eq!(at(10.0, -3.0), Some(false));
+        assert_eq!(at(30.0, 0.0), None, "on the range's edge");
+        assert_eq!(
+            at(10.0, std::f64::consts::FRAC_PI_2),
+            None,
+            "on the field's edge"
+        );
+        assert_eq!(v.by_products(f64::NAN, 1.0, f64::NAN), None);
+        assert_eq!(v.by_products(0.0, 0.0, 0.0), None, "on the robot");
+        let round = view(30.0, 7.0, 0.3);
+        assert_eq!(
+            round.by_products(-10.0, 0.0, 100.0),
+            Some(true),
+            "all round"
+        );
     }
 }

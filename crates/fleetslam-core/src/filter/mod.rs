@@ -690,44 +690,47 @@ impl FastSlam {
         // Resolve known ids to slots (new ids get the next slot in every particle).
         let mut known_len = self.known_slots.len();
         let mut new_ids = Vec::new();
-        let obs: Vec<Obs> = rec
-            .landmarks
-            .iter()
-            .map(|o| {
-                let mut z = [0.0; 3];
-                z[..o.z.len()].copy_from_slice(&o.z);
-                let slot = match (cfg.association, o.id) {
-                    (Association::Known, Some(id)) => Some(match self.known_slots.get(&id) {
-                        Some(&s) => s,
-                        None => {
-                            let s = known_len;
-                            known_len += 1;
-                            new_ids.push((id, s));
-                            s
+        let obs: Vec<Obs> =
+            rec.landmarks
+                .iter()
+                .map(|o| {
+                    let mut z = [0.0; 3];
+                    z[..o.z.len()].copy_from_slice(&o.z);
+                    let slot = match (cfg.association, o.id) {
+                        (Association::Known, Some(id)) => {
+                            // A new id seen twice in the record takes one slot.
+                            let seen = self.known_slots.get(&id).copied().or_else(|| {
+                                new_ids.iter().find(|(i, _)| *i == id).map(|&(_, s)| s)
+                            });
+                            Some(seen.unwrap_or_else(|| {
+                                let s = known_len;
+                                known_len += 1;
+                                new_ids.push((id, s));
+                                s
+                            }))
                         }
-                    }),
-                    _ => None,
-                };
-                // Landmarks keep the observations' ids only when association is by id.
-                let id = (cfg.association == Association::Known)
-                    .then_some(o.id)
-                    .flatten();
-                let clutter = match cfg.landmark_kind {
-                    LandmarkKind::RangeBearing2d => {
-                        let (a, d) = (&cfg.association_params, &self.derived);
-                        range_bearing_noise(&cfg.sensor_noise, z[0], a, d, d.clutter).1
+                        _ => None,
+                    };
+                    // Landmarks keep the observations' ids only when association is by id.
+                    let id = (cfg.association == Association::Known)
+                        .then_some(o.id)
+                        .flatten();
+                    let clutter = match cfg.landmark_kind {
+                        LandmarkKind::RangeBearing2d => {
+                            let (a, d) = (&cfg.association_params, &self.derived);
+                            range_bearing_noise(&cfg.sensor_noise, z[0], a, d, d.clutter).1
+                        }
+                        LandmarkKind::Point3d => self.derived.clutter,
+                    };
+                    Obs {
+                        z,
+                        id,
+                        slot,
+                        clutter,
                     }
-                    LandmarkKind::Point3d => self.derived.clutter,
-                };
-                Obs {
-                    z,
-                    id,
-                    slot,
-                    clutter,
-                }
-            })
-            .filter(|o| cfg.association == Association::Unknown || o.slot.is_some())
-            .collect();
+                })
+                .filter(|o| cfg.association == Association::Unknown || o.slot.is_some())
+                .collect();
         let ignored_no_id = rec.landmarks.len() - obs.len();
 
         let mut sightings = Vec::new();
@@ -1874,6 +1877,36 @@ mod tests {
             let (w1, w2) = (run(FastSlamVersion::V1), run(FastSlamVersion::V2));
             for (a, b) in w1.iter().zip(&w2) {
                 assert!((a - b).abs() < 1e-9, "{association:?}: {w1:?} vs {w2:?}");
+            }
+        }
+    }
+
+    /// A known id seen twice in the record that first maps it: the id takes one slot, the
+    /// first observation creates the landmark and the second updates it, in 1.0 and 2.0
+    /// alike. Before session 30 each observation took a slot of its own (two landmarks of
+    /// one id), and had they shared one the second would have been dropped (no update, no
+    /// likelihood in the weight).
+    #[test]
+    fn a_new_id_seen_twice_in_a_record_is_created_then_updated() {
+        for version in [FastSlamVersion::V1, FastSlamVersion::V2] {
+            let n = 8;
+            let mut f = robot_r(config(version, Association::Known, n));
+            f.step(&record(&[[2.0, 0.0], [2.05, 0.01]])).unwrap();
+            let stats = f.stats();
+            assert_eq!(f.known_slots.len(), 1, "{version:?}");
+            assert_eq!(stats.landmarks_created, n as u64, "{version:?}");
+            assert_eq!(stats.landmark_updates, n as u64, "{version:?}");
+            let mut once = robot_r(config(version, Association::Known, n));
+            once.step(&record(&[[2.0, 0.0]])).unwrap();
+            for (p, q) in f.particles().iter().zip(once.particles()) {
+                let (l, k) = (p.map.get(0).unwrap(), q.map.get(0).unwrap());
+                assert_eq!(l.hits, 2, "{version:?}");
+                assert!(
+                    l.gaussian.cov[0] < 0.75 * k.gaussian.cov[0],
+                    "{version:?}: the second observation narrows the landmark: {:?} vs {:?}",
+                    l.gaussian.cov,
+                    k.gaussian.cov
+                );
             }
         }
     }

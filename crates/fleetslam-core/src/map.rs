@@ -71,8 +71,8 @@ fn copy_shared<T: Clone>(a: &mut CowArc<T>) {
 /// a query looks up each cell its disc overlaps (a lookup in the persistent hash trie costs
 /// about 100 instructions) and visits the landmarks they hold, so larger cells mean fewer
 /// lookups and more landmarks visited. On Victoria Park (association radii of several
-/// metres, trees some 10 m apart) the filter's steps took 4,160 M instructions with 4 m
-/// cells, 3,575 M with 8 m, 3,469 M with 12 m and 3,482 M with 16 m (`RAYON_NUM_THREADS=1
+/// metres, trees some 10 m apart) the filter's steps took 4,204 M instructions with 4 m
+/// cells, 3,618 M with 8 m, 3,512 M with 12 m and 3,523 M with 16 m (`RAYON_NUM_THREADS=1
 /// valgrind --tool=callgrind <filter_seeds> victoria --duration 200`; an earlier filter ran
 /// the whole park in 7.2 s of CPU with 2 m cells against 6.3 s with 4 m); on the association benchmark's 3 m lattice (`cargo bench -p
 /// fleetslam-core --bench association`) 8 m cells cost about the same as 4 m up to M = 10,000
@@ -154,8 +154,53 @@ fn cell(v: f64) -> i32 {
     (v / INDEX_CELL).floor() as i32
 }
 
-/// The spatial index: slots by [`Place`].
-type SpatialIndex = HashTrieMapSync<Place, Arc<[u32]>, foldhash::fast::FixedState>;
+/// The spatial index: slots by [`Place`]. The cells' lists are in a persistent hash trie;
+/// the wide list, which every query visits, is held beside it, so that a query looks up only
+/// the cells its disc overlaps (a lookup costs about 100 instructions; the wide list's were
+/// 1.1 M of Victoria Park's 5.2 M lookups; README, session 30).
+#[derive(Debug, Clone, Default)]
+struct SpatialIndex {
+    cells: HashTrieMapSync<(i32, i32), Arc<[u32]>, foldhash::fast::FixedState>,
+    wide: Option<Arc<[u32]>>,
+}
+
+impl SpatialIndex {
+    /// The slots kept at `place`.
+    #[inline(always)]
+    fn get(&self, place: Place) -> Option<&Arc<[u32]>> {
+        match place {
+            Place::Cell(x, y) => self.cells.get(&(x, y)),
+            Place::Wide => self.wide.as_ref(),
+        }
+    }
+
+    /// Keeps `list` at `place` (`None`: nothing).
+    fn set(&mut self, place: Place, list: Option<Arc<[u32]>>) {
+        match (place, list) {
+            (Place::Cell(x, y), Some(l)) => {
+                self.cells.insert_mut((x, y), l);
+            }
+            (Place::Cell(x, y), None) => {
+                self.cells.remove_mut(&(x, y));
+            }
+            (Place::Wide, l) => self.wide = l,
+        }
+    }
+
+    #[cfg(test)]
+    fn is_empty(&self) -> bool {
+        self.cells.is_empty() && self.wide.is_none()
+    }
+
+    /// Every place with its slots (cells in no particular order, then the wide list).
+    #[cfg(test)]
+    fn iter(&self) -> impl Iterator<Item = (Place, &Arc<[u32]>)> {
+        self.cells
+            .iter()
+            .map(|(&(x, y), l)| (Place::Cell(x, y), l))
+            .chain(self.wide.as_ref().map(|l| (Place::Wide, l)))
+    }
+}
 
 /// Moves `slot` in `index` from place `a` to place `b` (`None`: not indexed).
 fn move_in_index(index: &mut SpatialIndex, slot: usize, a: Option<Place>, b: Option<Place>) {
@@ -164,23 +209,21 @@ fn move_in_index(index: &mut SpatialIndex, slot: usize, a: Option<Place>, b: Opt
     }
     let slot = slot as u32;
     if let Some(a) = a {
-        match index.get(&a) {
-            Some(l) if l.len() == 1 => {
-                index.remove_mut(&a);
-            }
+        match index.get(a) {
+            Some(l) if l.len() == 1 => index.set(a, None),
             Some(l) => {
                 let list: Arc<[u32]> = l.iter().copied().filter(|s| *s != slot).collect();
-                index.insert_mut(a, list);
+                index.set(a, Some(list));
             }
             None => debug_assert!(false, "slot {slot} missing from the index"),
         }
     }
     if let Some(b) = b {
-        let list: Arc<[u32]> = match index.get(&b) {
+        let list: Arc<[u32]> = match index.get(b) {
             Some(l) => l.iter().copied().chain([slot]).collect(),
             None => Arc::new([slot]),
         };
-        index.insert_mut(b, list);
+        index.set(b, Some(list));
     }
 }
 
@@ -579,7 +622,7 @@ impl LandmarkMap {
     /// [`LandmarkMap::for_each_near`]).
     #[inline(always)]
     fn visit_place(&self, place: Place, f: &mut impl FnMut(usize, &Landmark)) {
-        for &s in self.index.get(&place).into_iter().flat_map(|l| l.iter()) {
+        for &s in self.index.get(place).into_iter().flat_map(|l| l.iter()) {
             let s = s as usize;
             let l = self.get(s).expect("the index names present landmarks");
             f(s, l);

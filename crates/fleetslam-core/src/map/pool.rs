@@ -378,7 +378,7 @@ mod tests {
             .index
             .iter()
             .map(|(p, l)| {
-                let key = match *p {
+                let key = match p {
                     Place::Cell(x, y) => (0, x, y),
                     Place::Wide => (1, 0, 0),
                 };

@@ -74,9 +74,10 @@ fn copy_shared<T: Clone>(a: &mut CowArc<T>) {
 /// metres, trees some 10 m apart) the filter's steps took 4,204 M instructions with 4 m
 /// cells, 3,618 M with 8 m, 3,512 M with 12 m and 3,523 M with 16 m (`RAYON_NUM_THREADS=1
 /// valgrind --tool=callgrind <filter_seeds> victoria --duration 200`; an earlier filter ran
-/// the whole park in 7.2 s of CPU with 2 m cells against 6.3 s with 4 m); on the association benchmark's 3 m lattice (`cargo bench -p
-/// fleetslam-core --bench association`) 8 m cells cost about the same as 4 m up to M = 10,000
-/// and up to 15 % more at 100,000 (README, session 30).
+/// the whole park in 7.2 s of CPU with 2 m cells against 6.3 s with 4 m); on the
+/// association benchmark's 3 m lattice (`cargo bench -p fleetslam-core --bench
+/// association`) 8 m cells cost about the same as 4 m up to M = 10,000 and 14 % more at
+/// 100,000 (README, session 30).
 pub const INDEX_CELL: f64 = 8.0;
 /// Landmarks whose ground-plane position variance (`cov_xx + cov_yy`) exceeds this [m²],
 /// or whose mean is not finite, are kept in a list that every query visits, because the
@@ -542,13 +543,14 @@ impl LandmarkMap {
 
     /// The landmark in `slot` opened for writing, `None` if the slot holds none: one walk
     /// down the trie that copies the nodes of the slot's path where another map shares them
-    /// (nothing is copied for an empty slot; a branch may be where a lower level turns out
-    /// empty). The landmark's `existence` field is its current log-odds (a value held apart
-    /// is taken into it, which changes no [`LandmarkMap::existence`]). Read it with
+    /// (for an empty slot no leaf is copied, though branches above it may be). The
+    /// landmark's `existence` field is its current log-odds (a value held apart is taken
+    /// into it, which changes no [`LandmarkMap::existence`]). Read it with
     /// [`LandmarkMut::get`] and change it with [`LandmarkMut::write`], which keeps the
     /// spatial index in step; a handle dropped unwritten leaves the landmark as it was. The
     /// filter reads each landmark it updates this way and writes its posterior after the
-    /// updater's batch: one walk per update instead of a read and a write (README, session 30).
+    /// updater's batch: one walk per update instead of a read and a write (README, session
+    /// 30).
     #[inline(always)]
     pub fn get_mut(&mut self, slot: usize) -> Option<LandmarkMut<'_>> {
         if slot >= self.slots {

@@ -687,50 +687,50 @@ impl FastSlam {
         };
         let var = cfg.motion_noise.variances(&inc, dt);
 
-        // Resolve known ids to slots (new ids get the next slot in every particle).
+        // Resolve known ids to slots (new ids get the next slot in every particle; a new id
+        // seen twice in the record takes one).
         let mut known_len = self.known_slots.len();
         let mut new_ids = Vec::new();
-        let obs: Vec<Obs> =
-            rec.landmarks
-                .iter()
-                .map(|o| {
-                    let mut z = [0.0; 3];
-                    z[..o.z.len()].copy_from_slice(&o.z);
-                    let slot = match (cfg.association, o.id) {
-                        (Association::Known, Some(id)) => {
-                            // A new id seen twice in the record takes one slot.
-                            let seen = self.known_slots.get(&id).copied().or_else(|| {
-                                new_ids.iter().find(|(i, _)| *i == id).map(|&(_, s)| s)
-                            });
-                            Some(seen.unwrap_or_else(|| {
-                                let s = known_len;
-                                known_len += 1;
-                                new_ids.push((id, s));
-                                s
-                            }))
-                        }
-                        _ => None,
-                    };
-                    // Landmarks keep the observations' ids only when association is by id.
-                    let id = (cfg.association == Association::Known)
-                        .then_some(o.id)
-                        .flatten();
-                    let clutter = match cfg.landmark_kind {
-                        LandmarkKind::RangeBearing2d => {
-                            let (a, d) = (&cfg.association_params, &self.derived);
-                            range_bearing_noise(&cfg.sensor_noise, z[0], a, d, d.clutter).1
-                        }
-                        LandmarkKind::Point3d => self.derived.clutter,
-                    };
-                    Obs {
-                        z,
-                        id,
-                        slot,
-                        clutter,
-                    }
+        let mut slot_of = |id: u32| {
+            let seen = self.known_slots.get(&id).copied();
+            seen.or_else(|| new_ids.iter().find(|(i, _)| *i == id).map(|&(_, s)| s))
+                .unwrap_or_else(|| {
+                    let s = known_len;
+                    known_len += 1;
+                    new_ids.push((id, s));
+                    s
                 })
-                .filter(|o| cfg.association == Association::Unknown || o.slot.is_some())
-                .collect();
+        };
+        let obs: Vec<Obs> = rec
+            .landmarks
+            .iter()
+            .map(|o| {
+                let mut z = [0.0; 3];
+                z[..o.z.len()].copy_from_slice(&o.z);
+                let slot = match (cfg.association, o.id) {
+                    (Association::Known, Some(id)) => Some(slot_of(id)),
+                    _ => None,
+                };
+                // Landmarks keep the observations' ids only when association is by id.
+                let id = (cfg.association == Association::Known)
+                    .then_some(o.id)
+                    .flatten();
+                let clutter = match cfg.landmark_kind {
+                    LandmarkKind::RangeBearing2d => {
+                        let (a, d) = (&cfg.association_params, &self.derived);
+                        range_bearing_noise(&cfg.sensor_noise, z[0], a, d, d.clutter).1
+                    }
+                    LandmarkKind::Point3d => self.derived.clutter,
+                };
+                Obs {
+                    z,
+                    id,
+                    slot,
+                    clutter,
+                }
+            })
+            .filter(|o| cfg.association == Association::Unknown || o.slot.is_some())
+            .collect();
         let ignored_no_id = rec.landmarks.len() - obs.len();
 
         let mut sightings = Vec::new();

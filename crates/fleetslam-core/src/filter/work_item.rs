@@ -761,6 +761,7 @@ const VIEW_EDGE_BAND: f64 = 1e-9;
 
 /// The sensor's view from a heading, for phase 5: whether a landmark at offset `(dx, dy)`
 /// from the robot lies within the range and the field of view.
+#[derive(Debug, Clone, Copy)]
 struct View {
     max_range: f64,
     r2: f64,
@@ -776,15 +777,27 @@ impl View {
     #[inline(always)]
     fn new(range: &SensorRange, theta: f64) -> Self {
         let half = 0.5 * range.fov;
-        let (sin, cos) = theta.sin_cos();
         Self {
             max_range: range.max_range,
             r2: range.max_range * range.max_range,
             half,
             cos_half: half.cos(),
+            theta: 0.0,
+            sin: 0.0,
+            cos: 1.0,
+        }
+        .facing(theta)
+    }
+
+    /// The same view from heading `theta` (what depends on the range and the field is kept).
+    #[inline(always)]
+    fn facing(&self, theta: f64) -> Self {
+        let (sin, cos) = theta.sin_cos();
+        Self {
             theta,
             sin,
             cos,
+            ..*self
         }
     }
 
@@ -845,10 +858,11 @@ fn lower_existence_in_view(
         return;
     };
     let reach = covering_radius(range.max_range * range.max_range);
+    let sensor = View::new(range, 0.0);
     for (i, (p, &pose)) in chunk.particles.iter_mut().zip(&*chunk.poses).enumerate() {
         let seen = &observed[i];
         let mut missed: Vec<usize> = Vec::new();
-        let view = View::new(range, pose.theta);
+        let view = sensor.facing(pose.theta);
         p.map.for_each_near(pose.x, pose.y, reach, |s, l| {
             let dx = l.gaussian.mean[0] - pose.x;
             let dy = l.gaussian.mean[1] - pose.y;

@@ -46,11 +46,12 @@ fn mrclam_robot_5_joins_after_the_others_mapped_for_a_minute() {
         j.localization.stats.updates,
         j.localization.samples
     );
-    // Measured (the header's odometry calibration and range noise; session 23, the scales'
-    // walk drawn at sampling records only): joined 1.8 s after join_at, robot 5 0.182 m
-    // after joining, team 0.191 m (session 22: 1.6 s, 0.173 m, 0.184 m). Before the range
-    // noise (100 particles, constant 0.3 m): 2.8 s and 0.286 m.
-    assert!(joined - join_at < 2.0, "joined {} s late", joined - join_at);
+    // Measured (session 31, the elementary functions from `libm` and the normal draws from
+    // `fleetslam_core::rng`): joined 2.07 s after join_at, robot 5 0.118 m after joining,
+    // team 0.202 m (session 23, with glibc's functions and `rand_distr`'s draws: 1.8 s,
+    // 0.182 m, 0.191 m; session 22: 1.6 s, 0.173 m, 0.184 m). Before the range noise (100
+    // particles, constant 0.3 m): 2.8 s and 0.286 m.
+    assert!(joined - join_at < 2.1, "joined {} s late", joined - join_at);
     // Its trajectory starts when it joined; evaluated against Vicon in the shared frame.
     let traj = &out.estimate.trajectories["5"];
     assert!(traj.first().unwrap().t >= joined);
@@ -69,11 +70,11 @@ fn mrclam_robot_5_joins_after_the_others_mapped_for_a_minute() {
         ev.robots["4"].ate_rmse
     );
     assert!(r5.matched_poses > 100);
-    assert!(r5.ate_rmse < 0.19, "robot 5 ATE {} m", r5.ate_rmse);
-    assert!(ev.team.ate_rmse < 0.2, "team ATE {} m", ev.team.ate_rmse);
-    // The others, measured (session 23, the scales' walk drawn at sampling records only):
-    // 0.214, 0.228, 0.102 and 0.214 m (session 22: 0.190, 0.214, 0.146 and 0.197 m).
-    for (id, bound) in [("1", 0.225), ("2", 0.24), ("3", 0.11), ("4", 0.225)] {
+    assert!(r5.ate_rmse < 0.13, "robot 5 ATE {} m", r5.ate_rmse);
+    assert!(ev.team.ate_rmse < 0.21, "team ATE {} m", ev.team.ate_rmse);
+    // The others, measured (session 31): 0.248, 0.216, 0.136 and 0.256 m (session 23:
+    // 0.214, 0.228, 0.102 and 0.214 m; session 22: 0.190, 0.214, 0.146 and 0.197 m).
+    for (id, bound) in [("1", 0.26), ("2", 0.23), ("3", 0.15), ("4", 0.27)] {
         assert!(
             ev.robots[id].ate_rmse < bound,
             "robot {id}: {}",

@@ -10,17 +10,18 @@ use fleetslam_suite::{dataset, experiments};
 
 /// Seeds of the 300 s no-ids slice (200 particles): one seed's map is a lottery (README).
 const NO_IDS_SEEDS: std::ops::RangeInclusive<u64> = 1..=4;
-/// Bound on their mean team ATE (measured 0.2505 m; seeds 1-12: 0.253 m).
-const NO_IDS_MEAN_ATE_BOUND: f64 = 0.26;
+/// Bound on their mean team ATE (measured 0.245 m since session 31's `libm` functions and
+/// normal draws; before, 0.2505 m, and seeds 1-12: 0.253 m).
+const NO_IDS_MEAN_ATE_BOUND: f64 = 0.25;
 /// Seeds among them that map every group within 0.3 m with no spurious landmark (measured 3
-/// of 4; seeds 1-12: 10 of 12).
+/// of 4, as before session 31; seeds 1-12 then: 10 of 12).
 const NO_IDS_PERFECT_SEEDS: usize = 3;
 /// The fewest groups any of them maps, and the most spurious landmarks (measured 5 and 1,
-/// in seed 2).
+/// in seed 1; before session 31 in seed 2).
 const NO_IDS_MIN_GROUPS: usize = 5;
 const NO_IDS_MAX_SPURIOUS: usize = 1;
 /// Bound on the optimal-matching landmark RMSE of a seed that maps every group (measured
-/// 0.144, 0.134 and 0.090 m).
+/// 0.078, 0.082 and 0.135 m; before session 31, 0.144, 0.134 and 0.090 m).
 const NO_IDS_PERFECT_RMSE_BOUND: f64 = 0.15;
 
 #[test]
@@ -50,17 +51,21 @@ fn mrclam_five_robots_shared_map_500_particles() {
     let ev = evaluate(&out.estimate, &imp.truth, true, &EvalOptions::default());
     println!("{ev}");
     assert_eq!(ev.robots.len(), 5);
-    // Measured 0.171 m (landmarks 0.073 m, 15/15; robots 0.132-0.211 m) with the range
-    // noise that grows with the range (the header's suggestion with ids since session 21);
-    // with the constant 0.3 m before it, 0.214 m (landmarks 0.159 m; robots 0.155-0.277 m).
+    // Measured 0.187 m (landmarks 0.115 m, 15/15; robots 0.139-0.240 m) since session 31's
+    // elementary functions from `libm` and normal draws from `fleetslam_core::rng`; with
+    // glibc's and `rand_distr`'s before, 0.171 m (landmarks 0.073 m; robots 0.132-0.211 m):
+    // one draw of the filter's randomness against another (seeds 1-30 of the full run have
+    // the same mean either way, README). Before the range noise that grows with the range
+    // (the header's suggestion with ids since session 21), with a constant 0.3 m: 0.214 m
+    // (landmarks 0.159 m; robots 0.155-0.277 m).
     // Before deferred sampling and the odometry delay, 0.213 m, and seed 2 lost robot 4
     // (0.39 m); dead reckoning is about 2.8 m on the full run.
-    assert!(ev.team.ate_rmse < 0.18, "team ATE {} m", ev.team.ate_rmse);
+    assert!(ev.team.ate_rmse < 0.19, "team ATE {} m", ev.team.ate_rmse);
     for (id, r) in &ev.robots {
-        assert!(r.ate_rmse < 0.22, "robot {id} ATE {} m", r.ate_rmse);
+        assert!(r.ate_rmse < 0.25, "robot {id} ATE {} m", r.ate_rmse);
     }
     let lm = ev.team.landmark_rmse.expect("MRCLAM has landmark truth");
-    assert!(lm < 0.08, "landmark RMSE {lm} m");
+    assert!(lm < 0.12, "landmark RMSE {lm} m");
     assert!(
         ev.team.landmarks_matched == 15,
         "{} landmarks matched",
@@ -178,7 +183,8 @@ fn victoria_park_unknown_association_fastslam2() {
     assert!(!out.metrics.shared_frame, "GPS has its own frame");
     let ev = evaluate(&out.estimate, &imp.truth, false, &EvalOptions::default());
     println!("{ev}\n{:?}", out.metrics);
-    // Measured: 80 landmarks, ATE against GPS 1.22 m after alignment.
+    // Measured: 80 landmarks, ATE against GPS 1.09 m after alignment (1.22 m before session
+    // 31's `libm` functions and normal draws).
     let n = out.estimate.landmarks.len();
     assert!((50..120).contains(&n), "{n} landmarks");
     assert!(

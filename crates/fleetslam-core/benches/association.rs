@@ -13,6 +13,7 @@ use criterion::{BatchSize, BenchmarkId, Criterion, SamplingMode, criterion_group
 use fleetslam_core::config::Association;
 use fleetslam_core::log::{LandmarkObservation, Record, SensorRange};
 use fleetslam_core::map::{Landmark, LandmarkMap};
+use fleetslam_core::math;
 use fleetslam_core::motion::Motion;
 use fleetslam_core::updater::LandmarkGaussian;
 use fleetslam_core::{FastSlam, FilterConfig, Pose2, PoseGaussian};
@@ -68,7 +69,7 @@ fn filter_with_map(m: usize) -> (FastSlam, Record) {
     }
     let slam = FastSlam::from_snapshot(snap, slam.updater().clone()).unwrap();
     let mut near = points.clone();
-    let d = |p: &[f64; 2]| (p[0] - start.x).hypot(p[1] - start.y);
+    let d = |p: &[f64; 2]| math::hypot(p[0] - start.x, p[1] - start.y);
     near.sort_by(|a, b| d(a).total_cmp(&d(b)));
     let rec = Record {
         robot: "r1".into(),
@@ -81,7 +82,7 @@ fn filter_with_map(m: usize) -> (FastSlam, Record) {
                 let (dx, dy) = (p[0] - start.x, p[1] - start.y);
                 LandmarkObservation {
                     id: None,
-                    z: vec![dx.hypot(dy) + 0.02, dy.atan2(dx) - 0.005],
+                    z: vec![math::hypot(dx, dy) + 0.02, math::atan2(dy, dx) - 0.005],
                 }
             })
             .collect(),

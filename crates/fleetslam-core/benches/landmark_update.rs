@@ -8,6 +8,7 @@
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use fleetslam_core::Pose2;
 use fleetslam_core::ekf::EkfUpdater;
+use fleetslam_core::math;
 use fleetslam_core::rng::stream;
 use fleetslam_core::sensor::{LandmarkKind, SensorNoise};
 use fleetslam_core::updater::{LandmarkUpdater, UpdateInput, UpdateNeeds, UpdateOutput};
@@ -32,7 +33,11 @@ fn inputs(u: &EkfUpdater, n: usize) -> Vec<UpdateInput> {
             let (r, b): (f64, f64) = (rng.random_range(1.0..20.0), rng.random_range(-1.5..1.5));
             let z0 = match u.kind() {
                 LandmarkKind::RangeBearing2d => [r, b, 0.0],
-                LandmarkKind::Point3d => [r * b.cos(), r * b.sin(), rng.random_range(-2.0..2.0)],
+                LandmarkKind::Point3d => [
+                    r * math::cos(b),
+                    r * math::sin(b),
+                    rng.random_range(-2.0..2.0),
+                ],
             };
             let prior = u.initialize(&pose, &z0);
             let mut z = z0;

@@ -25,10 +25,11 @@ use common::{grow_map, new_filter, observe_five, shared_filter, with_config};
 use criterion::{BatchSize, BenchmarkId, Criterion, SamplingMode, criterion_group, criterion_main};
 use fleetslam_core::FastSlam;
 use fleetslam_core::filter::Particle;
+use fleetslam_core::math;
 use fleetslam_core::resample::{normalize_log_weights, systematic};
+use fleetslam_core::rng::StandardNormal;
 use fleetslam_core::rng::{LANE_RESAMPLE, stream};
 use rand::Rng;
-use rand_distr::StandardNormal;
 use std::hint::black_box;
 use std::time::{Duration, Instant};
 
@@ -41,7 +42,7 @@ fn resample(old: Vec<Particle>, mut log_w: Vec<f64>) -> Vec<Particle> {
     normalize_log_weights(&mut log_w);
     let mut rng = stream(0, 1, LANE_RESAMPLE);
     let idx = systematic(&log_w, &mut rng);
-    let uniform = -(old.len() as f64).ln();
+    let uniform = -math::ln(old.len() as f64);
     idx.into_iter()
         .map(|i| Particle {
             log_w: uniform,

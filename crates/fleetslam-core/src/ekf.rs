@@ -17,6 +17,7 @@
 
 use crate::ekf_lanes::{self, LANES};
 use crate::linalg::kalman_posterior_cov;
+use crate::math;
 use crate::pose::Pose2;
 use crate::sensor::{
     LandmarkKind, MeasurementModel, Point3Model, RangeBearingModel, SensorNoise, point3_inverse,
@@ -96,7 +97,7 @@ impl EkfUpdater {
         let cov = kalman_posterior_cov(&sigma, &k, &sht);
         finish(prior, M::gaussian(&mean, &cov), needs, || {
             let m2 = nu.dot(&(s_inv * nu));
-            (gaussian_log_density(m2, det.ln(), D), m2)
+            (gaussian_log_density(m2, math::ln(det), D), m2)
         })
     }
 }
@@ -194,14 +195,14 @@ impl LandmarkUpdater for EkfUpdater {
                 let (x, y) = range_bearing_inverse(pose, z[0], z[1]);
                 // H_m⁻¹ maps (range, bearing) noise to position: columns are the line of
                 // sight and its normal scaled by the range.
-                let (s, c) = (pose.theta + z[1]).sin_cos();
+                let (s, c) = math::sin_cos(pose.theta + z[1]);
                 let hinv = Matrix2::new(c, -z[0] * s, s, z[0] * c);
                 let cov = hinv * self.noise.q2_at(z[0]) * hinv.transpose();
                 LandmarkGaussian::from_2d([x, y], &cov)
             }
             LandmarkKind::Point3d => {
                 let m = point3_inverse(pose, z);
-                let (s, c) = pose.theta.sin_cos();
+                let (s, c) = math::sin_cos(pose.theta);
                 let r = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
                 LandmarkGaussian::from_3d(m, &(r * self.q3 * r.transpose()))
             }
@@ -265,7 +266,7 @@ mod tests {
         assert!(out.posterior.cov[1].abs() < 1e-12);
         // m² = 0.2² / 0.02 + 0.1² / 0.005 = 2 + 2 = 4.
         assert!((out.mahalanobis2 - 4.0).abs() < 1e-12);
-        let ll = -2.0 - LN_2PI - 0.5 * (0.02f64 * 0.005).ln();
+        let ll = -2.0 - LN_2PI - 0.5 * math::ln(0.02f64 * 0.005);
         assert!((out.log_likelihood - ll).abs() < 1e-12);
     }
 
@@ -318,7 +319,10 @@ mod tests {
             }),
         );
         let moved = |o: &UpdateOutput| {
-            (o.posterior.mean[0] - prior.mean[0]).hypot(o.posterior.mean[1] - prior.mean[1])
+            math::hypot(
+                o.posterior.mean[0] - prior.mean[0],
+                o.posterior.mean[1] - prior.mean[1],
+            )
         };
         assert!(moved(&a) < moved(&b), "{a:?} against {b:?}");
     }
@@ -394,7 +398,7 @@ mod tests {
                 let pose = Pose2::new(px, py, th);
                 let z0 = match kind {
                     LandmarkKind::RangeBearing2d => [r, b, 0.0],
-                    LandmarkKind::Point3d => [r * b.cos(), r * b.sin(), dz],
+                    LandmarkKind::Point3d => [r * math::cos(b), r * math::sin(b), dz],
                 };
                 let mut prior = u.initialize(&pose, &z0);
                 for c in prior.cov.iter_mut() { *c *= s; }

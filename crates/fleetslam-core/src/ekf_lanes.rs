@@ -13,6 +13,7 @@
 //! numbers leave the common path (a landmark on the robot, a bearing ratio beyond 2^±60,
 //! an angle at least 4π away from the wrapped interval) is left to the scalar update.
 
+use crate::math;
 use crate::stats::gaussian_log_density;
 use crate::updater::{LandmarkGaussian, UpdateInput, UpdateNeeds, UpdateOutput};
 use nalgebra::Matrix2;
@@ -396,7 +397,7 @@ pub(crate) fn update_range_bearing<S: Simd>(
                 cov: [p00[l], pxy[l], 0.0, p11[l], 0.0, 0.0],
             };
             if needs.likelihood() {
-                let ll = gaussian_log_density(m2[l], det[l].ln(), 2);
+                let ll = gaussian_log_density(m2[l], math::ln(det[l]), 2);
                 if ll.is_finite() {
                     UpdateOutput {
                         posterior,
@@ -442,7 +443,7 @@ mod tests {
         let [vx, vy, c] = v;
         UpdateInput {
             prior: LandmarkGaussian {
-                mean: [x + r * (th + b).cos(), y + r * (th + b).sin(), 0.0],
+                mean: [x + r * math::cos(th + b), y + r * math::sin(th + b), 0.0],
                 cov: [vx, c * (vx * vy).sqrt(), 0.0, vy, 0.0, 0.0],
             },
             pose: Pose2::new(x, y, th),

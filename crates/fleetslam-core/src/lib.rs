@@ -35,6 +35,7 @@ pub mod filter;
 pub mod linalg;
 pub mod log;
 pub mod map;
+pub mod math;
 pub mod motion;
 pub mod pose;
 pub mod resample;

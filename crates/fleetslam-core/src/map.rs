@@ -773,6 +773,7 @@ impl<'de> Deserialize<'de> for LandmarkMap {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::math;
 
     fn lm(x: f64) -> Landmark {
         Landmark {
@@ -905,7 +906,7 @@ mod tests {
                     seen.dedup();
                     prop_assert_eq!(seen.len(), n, "a landmark visited twice");
                     for (s, l) in map.iter() {
-                        let d = (l.gaussian.mean[0] - qx).hypot(l.gaussian.mean[1] - qy);
+                        let d = math::hypot(l.gaussian.mean[0] - qx, l.gaussian.mean[1] - qy);
                         prop_assert!(d > r || seen.binary_search(&s).is_ok(), "slot {} at {} m missed", s, d);
                     }
                 }
@@ -1088,7 +1089,7 @@ mod tests {
         let near = |m: &LandmarkMap, x: f64, y: f64| {
             let mut found = Vec::new();
             m.for_each_near(x, y, 0.5, |s, l| {
-                if (l.gaussian.mean[0] - x).hypot(l.gaussian.mean[1] - y) < 0.5 {
+                if math::hypot(l.gaussian.mean[0] - x, l.gaussian.mean[1] - y) < 0.5 {
                     found.push(s);
                 }
             });

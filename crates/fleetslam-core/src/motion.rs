@@ -16,6 +16,7 @@
 //! Because the noisy pose is `prev ⊕ (increment + e)`, which is linear in `e`, the world-frame
 //! covariance that FastSLAM 2.0's proposal needs is exact: `R = J diag(var) J^T`.
 
+use crate::math;
 use crate::pose::Pose2;
 use nalgebra::Matrix3;
 use serde::{Deserialize, Serialize};
@@ -110,7 +111,7 @@ pub fn velocity_increment(v: f64, w: f64, dt: f64) -> Pose2 {
         Pose2::new(d * (1.0 - th * th / 6.0), d * th / 2.0, th)
     } else {
         let r = v / w;
-        Pose2::new(r * th.sin(), r * (1.0 - th.cos()), th)
+        Pose2::new(r * math::sin(th), r * (1.0 - math::cos(th)), th)
     }
 }
 
@@ -152,7 +153,7 @@ impl AckermannParams {
     };
 
     fn derivative(&self, vc: f64, tan_s: f64, phi: f64) -> [f64; 3] {
-        let (s, c) = phi.sin_cos();
+        let (s, c) = math::sin_cos(phi);
         let k = tan_s / self.wheel_base;
         [
             vc * (c - k * (self.sensor_forward * s + self.sensor_left * c)),
@@ -163,7 +164,7 @@ impl AckermannParams {
 
     /// Integrates one segment (encoder speed, steering, dt) from the origin with RK4.
     pub fn increment(&self, speed: f64, steering: f64, dt: f64) -> Pose2 {
-        let tan_s = steering.tan();
+        let tan_s = math::tan(steering);
         let vc = speed / (1.0 - tan_s * self.encoder_offset / self.wheel_base);
         let (mut x, mut y, mut phi) = (0.0, 0.0, 0.0);
         // Steps of at most 50 ms keep RK4 far below the sensor noise.
@@ -244,7 +245,7 @@ impl MotionNoise {
     /// random walk over at most `random_walk_max_dt` of them).
     #[inline]
     pub fn variances(&self, inc: &Pose2, dt: f64) -> [f64; 3] {
-        let d = inc.x.hypot(inc.y);
+        let d = math::hypot(inc.x, inc.y);
         let dt = dt.clamp(0.0, self.random_walk_max_dt);
         let rw_t = self.trans_per_sqrt_s * self.trans_per_sqrt_s * dt;
         [
@@ -266,7 +267,7 @@ impl MotionNoise {
 /// `e` with the given (longitudinal, lateral, heading) variances.
 #[inline]
 pub fn covariance_in_world(prev: &Pose2, var: &[f64; 3]) -> Matrix3<f64> {
-    covariance_in_world_sc(prev.theta.sin_cos(), var)
+    covariance_in_world_sc(math::sin_cos(prev.theta), var)
 }
 
 /// [`covariance_in_world`] given the sine and cosine of the previous heading.
@@ -307,7 +308,7 @@ mod tests {
         fn covariance_in_world_is_the_full_product(
             theta in prop_oneof![Just(0.0), -4.0..4.0f64], var in proptest::array::uniform3(entry()),
         ) {
-            let (s, c) = theta.sin_cos();
+            let (s, c) = math::sin_cos(theta);
             let j = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
             let full = crate::linalg::sandwich(&j, &Matrix3::from_diagonal(&Vector3::from(var)));
             let got = covariance_in_world_sc((s, c), &var);
@@ -349,8 +350,8 @@ mod tests {
         // Heading rate is v_c / L * tan(steer), with v_c = v_e / (1 - tan(steer) H / L).
         let steer: f64 = 0.1;
         let t = p.increment(2.0, steer, 1.0);
-        let vc = 2.0 / (1.0 - steer.tan() * 0.76 / 2.83);
-        assert!((t.theta - vc / 2.83 * steer.tan()).abs() < 1e-9);
+        let vc = 2.0 / (1.0 - math::tan(steer) * 0.76 / 2.83);
+        assert!((t.theta - vc / 2.83 * math::tan(steer)).abs() < 1e-9);
         // Turning left moves the laser (ahead of the axle) to the left.
         assert!(t.y > 0.0);
     }

@@ -1,5 +1,6 @@
 //! Planar robot poses and the angle arithmetic every model shares.
 
+use crate::math;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
 
@@ -32,10 +33,10 @@ impl Pose2 {
     /// `self ⊕ delta`: applies an increment expressed in this pose's frame.
     #[inline]
     pub fn compose(&self, delta: &Pose2) -> Pose2 {
-        self.compose_sc(delta, self.theta.sin_cos())
+        self.compose_sc(delta, math::sin_cos(self.theta))
     }
 
-    /// [`Pose2::compose`] given `self.theta.sin_cos()`, for callers that need it anyway.
+    /// [`Pose2::compose`] given `math::sin_cos(self.theta)`, for callers that need it anyway.
     #[inline]
     pub fn compose_sc(&self, delta: &Pose2, (s, c): (f64, f64)) -> Pose2 {
         Pose2 {
@@ -48,7 +49,7 @@ impl Pose2 {
     /// `self ⊖ other`: the increment that takes `other` to `self`, in `other`'s frame.
     #[inline]
     pub fn relative_to(&self, other: &Pose2) -> Pose2 {
-        let (s, c) = other.theta.sin_cos();
+        let (s, c) = math::sin_cos(other.theta);
         let dx = self.x - other.x;
         let dy = self.y - other.y;
         Pose2 {
@@ -60,7 +61,7 @@ impl Pose2 {
 
     /// Euclidean distance between the positions.
     pub fn distance(&self, other: &Pose2) -> f64 {
-        (self.x - other.x).hypot(self.y - other.y)
+        math::hypot(self.x - other.x, self.y - other.y)
     }
 
     pub fn is_finite(&self) -> bool {
@@ -118,7 +119,7 @@ impl Default for PositionHeading {
 impl PositionHeading {
     #[inline]
     pub fn of(p: &Pose2) -> Self {
-        let (sin, cos) = p.theta.sin_cos();
+        let (sin, cos) = math::sin_cos(p.theta);
         Self {
             x: p.x,
             y: p.y,
@@ -168,7 +169,7 @@ pub fn weighted_mean_pose_sc(items: impl Iterator<Item = (PositionHeading, f64)>
     if sw <= 0.0 {
         return Pose2::default();
     }
-    Pose2::new(sx / sw, sy / sw, ss.atan2(sc))
+    Pose2::new(sx / sw, sy / sw, math::atan2(ss, sc))
 }
 
 #[cfg(test)]

@@ -1,5 +1,6 @@
 //! Log-space weights and low-variance (systematic) resampling.
 
+use crate::math;
 use rand::Rng;
 use rayon::prelude::*;
 
@@ -17,7 +18,7 @@ pub fn normalize_log_weights(log_w: &mut [f64]) -> f64 {
 }
 
 /// [`normalize_log_weights`], also writing each normalised weight `exp(w)` (bit for bit what
-/// `w.exp()` gives afterwards) into `weights`, which is cleared first: the normalisation
+/// `math::exp(w)` gives afterwards) into `weights`, which is cleared first: the normalisation
 /// computes them for the ESS anyway. Its two passes of `exp` run in parallel (rayon) and
 /// their sums in order, so the results are the same bits on any number of threads (the
 /// tests compare them with the sequential computation): a filter of 1,000 particles
@@ -35,9 +36,9 @@ pub fn normalize_log_weights_keeping(log_w: &mut [f64], weights: &mut Vec<f64>) 
         .filter(|w| w.is_finite())
         .fold(f64::NEG_INFINITY, f64::max);
     if !max.is_finite() {
-        let u = -(n as f64).ln();
+        let u = -math::ln(n as f64);
         log_w.fill(u);
-        weights.resize(n, u.exp());
+        weights.resize(n, math::exp(u));
         return n as f64;
     }
     weights.resize(n, 0.0);
@@ -45,9 +46,15 @@ pub fn normalize_log_weights_keeping(log_w: &mut [f64], weights: &mut Vec<f64>) 
         .par_iter_mut()
         .zip(log_w.par_iter())
         .with_min_len(PARALLEL_WEIGHTS_MIN)
-        .for_each(|(e, &w)| *e = if w.is_finite() { (w - max).exp() } else { 0.0 });
+        .for_each(|(e, &w)| {
+            *e = if w.is_finite() {
+                math::exp(w - max)
+            } else {
+                0.0
+            }
+        });
     let sum: f64 = weights.iter().sum();
-    let lse = max + sum.ln();
+    let lse = max + math::ln(sum);
     weights
         .par_iter_mut()
         .zip(log_w.par_iter_mut())
@@ -58,7 +65,7 @@ pub fn normalize_log_weights_keeping(log_w: &mut [f64], weights: &mut Vec<f64>) 
             } else {
                 f64::MIN
             };
-            *p = w.exp();
+            *p = math::exp(*w);
         });
     let mut sq = 0.0;
     for p in weights.iter() {
@@ -71,7 +78,7 @@ pub fn normalize_log_weights_keeping(log_w: &mut [f64], weights: &mut Vec<f64>) 
 /// weights (Thrun, Burgard, Fox, Probabilistic Robotics, table 4.4). `log_w` must be
 /// normalised. Returns the index of the parent of each new particle, in order.
 pub fn systematic(log_w: &[f64], rng: &mut impl Rng) -> Vec<usize> {
-    let weights: Vec<f64> = log_w.iter().map(|w| w.exp()).collect();
+    let weights: Vec<f64> = log_w.iter().map(|&w| math::exp(w)).collect();
     systematic_weights(&weights, rng)
 }
 
@@ -116,15 +123,21 @@ mod tests {
             .filter(|w| w.is_finite())
             .fold(f64::NEG_INFINITY, f64::max);
         if !max.is_finite() {
-            let u = -(n as f64).ln();
+            let u = -math::ln(n as f64);
             log_w.fill(u);
-            return (n as f64, vec![u.exp(); n]);
+            return (n as f64, vec![math::exp(u); n]);
         }
         let sum: f64 = log_w
             .iter()
-            .map(|&w| if w.is_finite() { (w - max).exp() } else { 0.0 })
+            .map(|&w| {
+                if w.is_finite() {
+                    math::exp(w - max)
+                } else {
+                    0.0
+                }
+            })
             .sum();
-        let lse = max + sum.ln();
+        let lse = max + math::ln(sum);
         let (mut sq, mut weights) = (0.0, Vec::with_capacity(n));
         for w in log_w.iter_mut() {
             *w = if w.is_finite() {
@@ -132,7 +145,7 @@ mod tests {
             } else {
                 f64::MIN
             };
-            let p = w.exp();
+            let p = math::exp(*w);
             weights.push(p);
             sq += p * p;
         }
@@ -152,7 +165,10 @@ mod tests {
 
     #[test]
     fn systematic_keeps_proportions() {
-        let mut w: Vec<f64> = [0.5f64, 0.25, 0.25, 0.0].iter().map(|p| p.ln()).collect();
+        let mut w: Vec<f64> = [0.5f64, 0.25, 0.25, 0.0]
+            .iter()
+            .map(|&p| math::ln(p))
+            .collect();
         normalize_log_weights(&mut w);
         let idx = systematic(&w, &mut crate::rng::stream(0, 0, 0));
         let count = |k| idx.iter().filter(|&&i| i == k).count();
@@ -164,7 +180,7 @@ mod tests {
         fn normalised_weights_sum_to_one(ws in proptest::collection::vec(-1e3f64..1e3, 1..200)) {
             let mut w = ws.clone();
             let ess = normalize_log_weights(&mut w);
-            let s: f64 = w.iter().map(|w| w.exp()).sum();
+            let s: f64 = w.iter().map(|&w| math::exp(w)).sum();
             prop_assert!((s - 1.0).abs() < 1e-9);
             prop_assert!(ess >= 1.0 - 1e-9 && ess <= w.len() as f64 + 1e-9);
             let idx = systematic(&w, &mut crate::rng::stream(1, 2, 3));
@@ -198,7 +214,7 @@ mod tests {
             prop_assert_eq!(kept.len(), a.len());
             for (((w, k), v), p) in a.iter().zip(&kept).zip(&b).zip(&want_kept) {
                 prop_assert_eq!(w.to_bits(), v.to_bits());
-                prop_assert_eq!(k.to_bits(), w.exp().to_bits());
+                prop_assert_eq!(k.to_bits(), math::exp(*w).to_bits());
                 prop_assert_eq!(k.to_bits(), p.to_bits());
             }
             let mut c = ws.clone();

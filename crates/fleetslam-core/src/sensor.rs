@@ -12,6 +12,7 @@
 //! localizer all compute with it, generic over the kind, and weigh with
 //! [`crate::stats::gaussian_log_density`].
 
+use crate::math;
 use crate::pose::{Pose2, wrap_angle};
 use crate::updater::LandmarkGaussian;
 use nalgebra::{Matrix2, Matrix2x3, Matrix3, SMatrix, SVector, Vector2, Vector3};
@@ -217,7 +218,7 @@ fn special_atan2(y: f64, x: f64) -> f64 {
 /// World position of a range-bearing measurement.
 #[inline]
 pub fn range_bearing_inverse(pose: &Pose2, range: f64, bearing: f64) -> (f64, f64) {
-    let (s, c) = (pose.theta + bearing).sin_cos();
+    let (s, c) = math::sin_cos(pose.theta + bearing);
     (pose.x + range * c, pose.y + range * s)
 }
 
@@ -225,7 +226,7 @@ pub fn range_bearing_inverse(pose: &Pose2, range: f64, bearing: f64) -> (f64, f6
 /// H_x (3x3, last row zero).
 #[inline]
 pub fn point3_predict(pose: &Pose2, m: &[f64; 3]) -> (Vector3<f64>, Matrix3<f64>, Matrix3<f64>) {
-    let (s, c) = pose.theta.sin_cos();
+    let (s, c) = math::sin_cos(pose.theta);
     let dxw = m[0] - pose.x;
     let dyw = m[1] - pose.y;
     let zx = c * dxw + s * dyw;
@@ -239,7 +240,7 @@ pub fn point3_predict(pose: &Pose2, m: &[f64; 3]) -> (Vector3<f64>, Matrix3<f64>
 /// World position of a relative point.
 #[inline]
 pub fn point3_inverse(pose: &Pose2, z: &[f64; 3]) -> [f64; 3] {
-    let (s, c) = pose.theta.sin_cos();
+    let (s, c) = math::sin_cos(pose.theta);
     [
         pose.x + c * z[0] - s * z[1],
         pose.y + s * z[0] + c * z[1],

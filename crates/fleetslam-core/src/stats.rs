@@ -2,6 +2,8 @@
 //! association gates (a squared Mahalanobis distance of a `d`-dimensional Gaussian innovation
 //! is χ² with `d` degrees of freedom), and `ln(eˣ + eʸ)` without overflow.
 
+use crate::math;
+
 /// ln(2π), of every Gaussian log-density in the workspace (the EKF's and the learned
 /// updater's likelihoods, the filter's proposal and association, the localizer's weights).
 pub const LN_2PI: f64 = 1.837_877_066_409_345_3;
@@ -21,10 +23,10 @@ fn ln_gamma_half(k: u32) -> f64 {
     let mut lg = if k.is_multiple_of(2) {
         0.0
     } else {
-        0.5 * std::f64::consts::PI.ln()
+        0.5 * math::ln(std::f64::consts::PI)
     };
     while a < 0.5 * k as f64 - 1e-9 {
-        lg += a.ln();
+        lg += math::ln(a);
         a += 1.0;
     }
     lg
@@ -50,8 +52,8 @@ pub fn chi2_cdf(x: f64, dof: u32) -> f64 {
             break;
         }
     }
-    let ln_p = a * x.ln() - x - ln_gamma_half(dof) + sum.ln();
-    ln_p.exp().min(1.0)
+    let ln_p = a * math::ln(x) - x - ln_gamma_half(dof) + math::ln(sum);
+    math::exp(ln_p).min(1.0)
 }
 
 /// The chi-square quantile: the x with `chi2_cdf(x, dof) = p`, by bisection (to 1e-12
@@ -80,18 +82,18 @@ pub fn log_add_exp(a: f64, b: f64) -> f64 {
     if hi == f64::NEG_INFINITY {
         return hi;
     }
-    hi + (lo - hi).exp().ln_1p()
+    hi + math::ln_1p(math::exp(lo - hi))
 }
 
 /// `e^ℓ / e^other` for the Gaussian log-density `ℓ` of `(m2, det, dim)`, without the
 /// logarithm of `det`: `e^a / √det` with `a = −m2/2 − dim·ln(2π)/2 − other`.
 #[inline]
 fn density_ratio(m2: f64, det: f64, dim: usize, other: f64) -> f64 {
-    (-0.5 * m2 - 0.5 * dim as f64 * LN_2PI - other).exp() / det.sqrt()
+    math::exp(-0.5 * m2 - 0.5 * dim as f64 * LN_2PI - other) / det.sqrt()
 }
 
 /// A sum of terms `log_add_exp(ℓ, other)`, each for a Gaussian log-density `ℓ =
-/// gaussian_log_density(m2, det.ln(), dim)` (a non-finite `ℓ` taken as `−∞`) against another
+/// gaussian_log_density(m2, math::ln(det), dim)` (a non-finite `ℓ` taken as `−∞`) against another
 /// log-density `other`, with one logarithm for the whole sum and none of `det`: a term is
 /// `other + ln(1 + x)` with `x = e^a / √det`, `a = −m2/2 − dim·ln(2π)/2 − other`; it adds
 /// `other` to a sum and multiplies `1 + x` into a product, whose logarithm
@@ -133,12 +135,12 @@ impl MixtureLogSum {
         self.sum += other;
         let f = 1.0 + x;
         if f > Self::FLUSH {
-            self.sum += f.ln();
+            self.sum += math::ln(f);
             return;
         }
         self.product *= f;
         if self.product > Self::FLUSH {
-            self.sum += self.product.ln();
+            self.sum += math::ln(self.product);
             self.product = 1.0;
         }
     }
@@ -146,14 +148,14 @@ impl MixtureLogSum {
     /// The sum of the terms added.
     #[inline]
     pub fn value(&self) -> f64 {
-        self.sum + self.product.ln()
+        self.sum + math::ln(self.product)
     }
 }
 
 /// A [`MixtureLogSum`] term as the two steps: the Gaussian's log-density
 /// (`−∞` when not finite), then `log_add_exp`.
 fn gaussian_log_add_exp_in_two_steps(m2: f64, det: f64, dim: usize, other: f64) -> f64 {
-    let ll = gaussian_log_density(m2, det.ln(), dim);
+    let ll = gaussian_log_density(m2, math::ln(det), dim);
     log_add_exp(
         if ll.is_finite() {
             ll
@@ -266,7 +268,7 @@ mod tests {
     fn chi2_matches_tables() {
         // Closed form for 2 dof: CDF = 1 − e^(−x/2).
         for x in [0.1, 1.0, 5.0, 9.21, 20.0] {
-            assert!((chi2_cdf(x, 2) - (1.0 - (-x / 2.0f64).exp())).abs() < 1e-13);
+            assert!((chi2_cdf(x, 2) - (1.0 - math::exp(-x / 2.0f64))).abs() < 1e-13);
         }
         // Published quantiles (99% and 99.9%).
         assert!((chi2_quantile(0.99, 2) - 9.2103).abs() < 1e-4);
@@ -280,15 +282,17 @@ mod tests {
     fn gaussian_log_density_is_the_log_of_the_density() {
         // 1D: N(x; 0, σ²) = exp(−x²/2σ²) / √(2πσ²).
         let (x, var) = (0.7f64, 0.09f64);
-        let pdf = (-x * x / (2.0 * var)).exp() / (2.0 * std::f64::consts::PI * var).sqrt();
-        assert!((gaussian_log_density(x * x / var, var.ln(), 1) - pdf.ln()).abs() < 1e-13);
+        let pdf = math::exp(-x * x / (2.0 * var)) / (2.0 * std::f64::consts::PI * var).sqrt();
+        assert!(
+            (gaussian_log_density(x * x / var, math::ln(var), 1) - math::ln(pdf)).abs() < 1e-13
+        );
         // Independent components: the 2D and 3D densities are sums of 1D ones.
-        let one = |x: f64, var: f64| gaussian_log_density(x * x / var, var.ln(), 1);
+        let one = |x: f64, var: f64| gaussian_log_density(x * x / var, math::ln(var), 1);
         let (y, vy, z, vz) = (-0.2f64, 0.01f64, 1.5f64, 4.0f64);
         let m2 = x * x / var + y * y / vy;
-        let two = gaussian_log_density(m2, (var * vy).ln(), 2);
+        let two = gaussian_log_density(m2, math::ln(var * vy), 2);
         assert!((two - (one(x, var) + one(y, vy))).abs() < 1e-12);
-        let three = gaussian_log_density(m2 + z * z / vz, (var * vy * vz).ln(), 3);
+        let three = gaussian_log_density(m2 + z * z / vz, math::ln(var * vy * vz), 3);
         assert!((three - (two + one(z, vz))).abs() < 1e-12);
         // It falls as the Mahalanobis distance grows.
         assert!(gaussian_log_density(2.0, 0.0, 2) < gaussian_log_density(1.0, 0.0, 2));
@@ -296,14 +300,14 @@ mod tests {
 
     #[test]
     fn log_add_exp_is_exact() {
-        assert!((log_add_exp(0.0, 0.0) - 2f64.ln()).abs() < 1e-15);
+        assert!((log_add_exp(0.0, 0.0) - math::ln(2f64)).abs() < 1e-15);
         assert_eq!(log_add_exp(f64::NEG_INFINITY, -3.0), -3.0);
         assert_eq!(
             log_add_exp(f64::NEG_INFINITY, f64::NEG_INFINITY),
             f64::NEG_INFINITY
         );
         assert!(
-            (log_add_exp(-1000.0, -1001.0) - (-1000.0 + (1.0 + (-1.0f64).exp()).ln())).abs()
+            (log_add_exp(-1000.0, -1001.0) - (-1000.0 + math::ln(1.0 + math::exp(-1.0f64)))).abs()
                 < 1e-12
         );
     }

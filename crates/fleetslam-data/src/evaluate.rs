@@ -86,6 +86,7 @@ use crate::formats::{
     LandmarkRow, TrajectoryPoint, Truth, landmarks_file, read_landmarks_csv_path, read_tum_path,
     robots_in, trajectory_file,
 };
+use fleetslam_core::math;
 use fleetslam_core::pose::{Pose2, wrap_angle};
 use nalgebra::{Matrix2, Matrix3, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
@@ -444,7 +445,7 @@ impl Se2 {
     };
 
     fn apply_xy(&self, x: f64, y: f64) -> (f64, f64) {
-        let (s, c) = self.phi.sin_cos();
+        let (s, c) = math::sin_cos(self.phi);
         (c * x - s * y + self.tx, s * x + c * y + self.ty)
     }
 
@@ -455,7 +456,7 @@ impl Se2 {
 
     fn apply_landmark(&self, row: &LandmarkRow) -> LandmarkRow {
         let (x, y) = self.apply_xy(row.mean[0], row.mean[1]);
-        let (s, c) = self.phi.sin_cos();
+        let (s, c) = math::sin_cos(self.phi);
         let r = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
         let cov = r * full_cov(&row.cov) * r.transpose();
         LandmarkRow {
@@ -498,9 +499,9 @@ fn fit_se2(pairs: &[(Pose2, Pose2)]) -> Option<Se2> {
     let phi = if dot == 0.0 && cross == 0.0 {
         0.0
     } else {
-        cross.atan2(dot)
+        math::atan2(cross, dot)
     };
-    let (s, c) = phi.sin_cos();
+    let (s, c) = math::sin_cos(phi);
     let fit = Se2 {
         tx: gx - (c * ex - s * ey),
         ty: gy - (s * ex + c * ey),
@@ -765,7 +766,7 @@ fn relative_errors(pairs: &[(Pose2, Pose2)], distance: f64) -> Vec<(f64, f64)> {
         let de = pairs[j].0.relative_to(&pairs[i].0);
         let dg = pairs[j].1.relative_to(&pairs[i].1);
         out.push((
-            (de.x - dg.x).hypot(de.y - dg.y),
+            math::hypot(de.x - dg.x, de.y - dg.y),
             wrap_angle(de.theta - dg.theta),
         ));
     }
@@ -1200,7 +1201,7 @@ mod tests {
                 let t = k as f64 * 0.2;
                 TrajectoryPoint {
                     t,
-                    pose: Pose2::new(t.cos() * 3.0 + t, (0.7 * t).sin() * 2.0, 0.3 * t),
+                    pose: Pose2::new(math::cos(t) * 3.0 + t, math::sin(0.7 * t) * 2.0, 0.3 * t),
                 }
             })
             .collect();
@@ -1210,7 +1211,7 @@ mod tests {
         let est_pts: Vec<TrajectoryPoint> = truth_pts
             .iter()
             .map(|p| {
-                let (s, c) = phi.sin_cos();
+                let (s, c) = math::sin_cos(phi);
                 let (dx, dy) = (p.pose.x - tx, p.pose.y - ty);
                 TrajectoryPoint {
                     t: p.t,

@@ -4,6 +4,7 @@
 //! Estimates and ground truth use the same names in their directory:
 //! `trajectory_<robot>.tum` per robot and `landmarks.csv`.
 
+use fleetslam_core::math;
 use fleetslam_core::pose::{Pose2, wrap_angle};
 use std::io::{BufRead, BufWriter, Write};
 use std::path::{Path, PathBuf};
@@ -65,8 +66,8 @@ pub fn write_tum(w: impl Write, points: &[TrajectoryPoint]) -> std::io::Result<(
             p.t,
             p.pose.x,
             p.pose.y,
-            h.sin(),
-            h.cos()
+            math::sin(h),
+            math::cos(h)
         )?;
     }
     w.flush()
@@ -98,7 +99,7 @@ pub fn read_tum(r: impl BufRead) -> std::io::Result<Vec<TrajectoryPoint>> {
             )));
         }
         let (qx, qy, qz, qw) = (v[4], v[5], v[6], v[7]);
-        let yaw = (2.0 * (qw * qz + qx * qy)).atan2(1.0 - 2.0 * (qy * qy + qz * qz));
+        let yaw = math::atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz));
         out.push(TrajectoryPoint {
             t: v[0],
             pose: Pose2::new(v[1], v[2], wrap_angle(yaw)),

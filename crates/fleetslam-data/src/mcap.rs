@@ -19,6 +19,7 @@
 //! the epoch; a run whose times are negative cannot be written (MCAP times are unsigned).
 
 use crate::formats::{LandmarkRow, Truth};
+use fleetslam_core::math;
 use fleetslam_core::pose::Pose2;
 use foxglove::schemas::{
     Color, CylinderPrimitive, FrameTransform, Pose, PoseInFrame, PosesInFrame, Quaternion,
@@ -50,7 +51,7 @@ fn stamp(t: f64) -> Result<Timestamp, McapError> {
 }
 
 fn quaternion(yaw: f64) -> Quaternion {
-    let (s, c) = (0.5 * yaw).sin_cos();
+    let (s, c) = math::sin_cos(0.5 * yaw);
     Quaternion {
         x: 0.0,
         y: 0.0,
@@ -79,7 +80,7 @@ fn ellipse(cov: &[f64; 6]) -> ([f64; 2], f64) {
     let sd = |l: f64| l.max(0.0).sqrt();
     (
         [4.0 * sd(mid + r), 4.0 * sd(mid - r)],
-        0.5 * (2.0 * b).atan2(a - c),
+        0.5 * math::atan2(2.0 * b, a - c),
     )
 }
 
@@ -449,7 +450,7 @@ mod tests {
         let ([a, b], h) = ellipse(&[0.25, 0.0, 0.0, 0.0625, 0.0, 0.0]);
         assert!((a - 2.0).abs() < 1e-12 && (b - 1.0).abs() < 1e-12 && h.abs() < 1e-12);
         // Rotated by 30 degrees.
-        let (s, c) = 30f64.to_radians().sin_cos();
+        let (s, c) = math::sin_cos(30f64.to_radians());
         let (l1, l2) = (0.25, 0.0625);
         let cov = [
             c * c * l1 + s * s * l2,

@@ -71,14 +71,15 @@ use fleetslam_core::log::{
     LOG_VERSION, LandmarkObservation, Log, LogHeader, Record, RobotSighting, RobotStart,
     SensorRange, record_order,
 };
+use fleetslam_core::math;
 use fleetslam_core::motion::{
     AckermannParams, Motion, MotionModel, MotionNoise, scale_increment, velocity_increment,
 };
 use fleetslam_core::pose::{Pose2, PoseGaussian, wrap_angle};
+use fleetslam_core::rng::StandardNormal;
 use fleetslam_core::sensor::{LandmarkKind, SensorNoise};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
 
@@ -441,10 +442,10 @@ fn start_pose(cfg: &SimConfig, i: usize) -> Pose2 {
     let x = m + u * (cfg.arena[0] - 2.0 * m);
     let y = m + v * (cfg.arena[1] - 2.0 * m);
     let (cx, cy) = (0.5 * cfg.arena[0], 0.5 * cfg.arena[1]);
-    let theta = if (cx - x).hypot(cy - y) < 1e-9 {
+    let theta = if math::hypot(cx - x, cy - y) < 1e-9 {
         0.0
     } else {
-        (cy - y).atan2(cx - x)
+        math::atan2(cy - y, cx - x)
     };
     Pose2::new(x, y, theta)
 }
@@ -478,12 +479,12 @@ impl Driver {
     /// arena allows it (a bounded number of tries keeps tiny arenas working).
     fn next_waypoint(&mut self, from: &Pose2) {
         let min_dist = MIN_WAYPOINT_DISTANCE
-            .min(0.5 * (self.hi[0] - self.lo[0]).hypot(self.hi[1] - self.lo[1]));
+            .min(0.5 * math::hypot(self.hi[0] - self.lo[0], self.hi[1] - self.lo[1]));
         for _ in 0..32 {
             let x = self.lo[0] + self.rng.random::<f64>() * (self.hi[0] - self.lo[0]);
             let y = self.lo[1] + self.rng.random::<f64>() * (self.hi[1] - self.lo[1]);
             self.waypoint = [x, y];
-            if (x - from.x).hypot(y - from.y) >= min_dist {
+            if math::hypot(x - from.x, y - from.y) >= min_dist {
                 break;
             }
         }
@@ -493,15 +494,15 @@ impl Driver {
     /// The command `(v, w)` for the next `dt` seconds from `pose`.
     fn command(&mut self, pose: &Pose2, dt: f64) -> (f64, f64) {
         let reached =
-            (self.waypoint[0] - pose.x).hypot(self.waypoint[1] - pose.y) < WAYPOINT_REACHED;
+            math::hypot(self.waypoint[0] - pose.x, self.waypoint[1] - pose.y) < WAYPOINT_REACHED;
         if reached || self.since > WAYPOINT_TIMEOUT {
             self.next_waypoint(pose);
         }
         self.since += dt;
-        let bearing = (self.waypoint[1] - pose.y).atan2(self.waypoint[0] - pose.x);
+        let bearing = math::atan2(self.waypoint[1] - pose.y, self.waypoint[0] - pose.x);
         let e = wrap_angle(bearing - pose.theta);
         let w = (HEADING_GAIN * e).clamp(-MAX_TURN_RATE, MAX_TURN_RATE);
-        let v = self.speed * (0.2 + 0.4 * (1.0 + e.cos()));
+        let v = self.speed * (0.2 + 0.4 * (1.0 + math::cos(e)));
         (v, w)
     }
 }
@@ -559,11 +560,11 @@ fn drive(cfg: &SimConfig, robot: usize) -> RobotRun {
 
 /// Planar range and bearing of `(x, y)` from `pose`, when inside the wedge.
 fn in_wedge(pose: &Pose2, x: f64, y: f64, max_range: f64, fov: f64) -> Option<(f64, f64)> {
-    let r = (x - pose.x).hypot(y - pose.y);
+    let r = math::hypot(x - pose.x, y - pose.y);
     if !(r > 1e-6 && r <= max_range) {
         return None;
     }
-    let b = wrap_angle((y - pose.y).atan2(x - pose.x) - pose.theta);
+    let b = wrap_angle(math::atan2(y - pose.y, x - pose.x) - pose.theta);
     (b.abs() <= 0.5 * fov).then_some((r, b))
 }
 
@@ -590,7 +591,7 @@ fn observe_landmarks(
                 vec![r, b]
             }
             LandmarkKind::Point3d => {
-                let (s, c) = pose.theta.sin_cos();
+                let (s, c) = math::sin_cos(pose.theta);
                 let (dx, dy) = (m[0] - pose.x, m[1] - pose.y);
                 let local = [c * dx + s * dy, -s * dx + c * dy, m[2]];
                 local
@@ -890,7 +891,7 @@ mod tests {
                     scale[0] * inc.y,
                     scale[1] * inc.theta,
                 ));
-                distance += inc.x.hypot(inc.y);
+                distance += math::hypot(inc.x, inc.y);
                 let k = r.seq as usize + 1;
                 assert!((truth[k].t - r.t).abs() < 1e-12);
                 let err = pose.distance(&truth[k].pose);

@@ -40,13 +40,14 @@ use crate::localizer::Localizer;
 use crate::map::{LandmarkSet, LikelihoodParams, MapLandmark};
 use crate::rtpf::RtpfParams;
 use fleetslam_core::log::{LandmarkObservation, Record};
+use fleetslam_core::math;
 use fleetslam_core::motion::{AckermannParams, Motion, MotionModel, MotionNoise};
 use fleetslam_core::pose::{Pose2, wrap_angle};
+use fleetslam_core::rng::StandardNormal;
 use fleetslam_core::rng::chacha_stream as stream;
 use fleetslam_core::sensor::{LandmarkKind, SensorNoise, range_bearing_predict};
 use fleetslam_core::updater::LandmarkGaussian;
 use rand::Rng;
-use rand_distr::StandardNormal;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::FRAC_PI_2;
@@ -197,8 +198,8 @@ impl LoopWorld {
         let wall = |s: f64, side: f64| {
             let (x, y, th) = self.along(s);
             (
-                x - side * self.wall_offset * th.sin(),
-                y + side * self.wall_offset * th.cos(),
+                x - side * self.wall_offset * math::sin(th),
+                y + side * self.wall_offset * math::cos(th),
             )
         };
         if self.period > 0.0 {
@@ -231,7 +232,7 @@ impl LoopWorld {
             let frac = [0.35, 0.6, 0.9, 0.15, 0.7][f % 5] + 0.01 * (f / 5) as f64;
             let (x, y, th) = self.along(frac * self.perimeter());
             let off = 0.5 * self.wall_offset;
-            lms.push(post(x - off * th.sin(), y + off * th.cos()));
+            lms.push(post(x - off * math::sin(th), y + off * math::cos(th)));
         }
         LandmarkSet {
             kind: LandmarkKind::RangeBearing2d,
@@ -594,8 +595,8 @@ impl RtpfExperiment {
                 };
                 let dth = 0.1 * rng.sample::<f64, _>(StandardNormal);
                 Pose2::new(
-                    x - lat * th.sin(),
-                    y + lat * th.cos(),
+                    x - lat * math::sin(th),
+                    y + lat * math::cos(th),
                     wrap_angle(th + back + dth),
                 )
             })
@@ -1479,7 +1480,7 @@ mod tests {
         let mut sightings = 0;
         for p in &run.truth {
             let near = features.iter().any(|f| {
-                (f.gaussian.mean[0] - p.x).hypot(f.gaussian.mean[1] - p.y) <= w.feature_range
+                math::hypot(f.gaussian.mean[0] - p.x, f.gaussian.mean[1] - p.y) <= w.feature_range
             });
             current = if near { current + 1 } else { 0 };
             sightings += usize::from(near);

@@ -34,13 +34,14 @@ use crate::error::LocalizeError;
 use crate::map::{LandmarkSet, ResolvedObs, Scorer};
 use crate::rtpf::{group_by_grid, grouped_beliefs, optimise_weights};
 use fleetslam_core::log::Record;
+use fleetslam_core::math;
 use fleetslam_core::motion::Motion;
 use fleetslam_core::pose::{Pose2, weighted_mean_pose, wrap_angle};
 use fleetslam_core::resample::normalize_log_weights;
+use fleetslam_core::rng::StandardNormal;
 use fleetslam_core::rng::chacha_stream as stream;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
-use rand_distr::StandardNormal;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashSet};
@@ -161,15 +162,15 @@ pub fn spread(poses: &[Pose2], weights: &[f64]) -> Spread {
     let (mut v, mut s, mut c) = (0.0, 0.0, 0.0);
     for (p, w) in poses.iter().zip(weights) {
         v += w * ((p.x - mean.x).powi(2) + (p.y - mean.y).powi(2));
-        s += w * p.theta.sin();
-        c += w * p.theta.cos();
+        s += w * math::sin(p.theta);
+        c += w * math::cos(p.theta);
     }
     let total: f64 = weights.iter().sum();
-    let r = (s.hypot(c) / total.max(f64::MIN_POSITIVE)).clamp(1e-300, 1.0);
+    let r = (math::hypot(s, c) / total.max(f64::MIN_POSITIVE)).clamp(1e-300, 1.0);
     Spread {
         mean,
         position: (v / total.max(f64::MIN_POSITIVE)).max(0.0).sqrt(),
-        heading: (-2.0 * r.ln()).max(0.0).sqrt(),
+        heading: (-2.0 * math::ln(r)).max(0.0).sqrt(),
     }
 }
 
@@ -208,12 +209,12 @@ pub fn systematic_n(log_w: &[f64], n: usize, rng: &mut ChaCha8Rng) -> Vec<usize>
     }
     let step = 1.0 / n as f64;
     let mut u = rng.random::<f64>() * step;
-    let mut c = log_w[0].exp();
+    let mut c = math::exp(log_w[0]);
     let mut i = 0;
     for _ in 0..n {
         while u > c && i + 1 < log_w.len() {
             i += 1;
-            c += log_w[i].exp();
+            c += math::exp(log_w[i]);
         }
         out.push(i);
         u += step;
@@ -309,7 +310,7 @@ impl Localizer {
     pub fn posterior(&self) -> (Vec<Pose2>, Vec<f64>) {
         (
             self.poses.clone(),
-            self.log_w.iter().map(|w| w.exp()).collect(),
+            self.log_w.iter().map(|&w| math::exp(w)).collect(),
         )
     }
 
@@ -320,12 +321,12 @@ impl Localizer {
             .iter()
             .zip(&self.log_w)
             .step_by(stride)
-            .map(|(p, w)| (*p, w.exp()))
+            .map(|(p, w)| (*p, math::exp(*w)))
             .collect()
     }
 
     pub fn spread(&self) -> Spread {
-        let w: Vec<f64> = self.log_w.iter().map(|w| w.exp()).collect();
+        let w: Vec<f64> = self.log_w.iter().map(|&w| math::exp(w)).collect();
         spread(&self.poses, &w)
     }
 
@@ -444,7 +445,7 @@ impl Localizer {
         }
         let n = poses.len();
         self.poses = poses;
-        self.log_w = vec![-(n as f64).ln(); n];
+        self.log_w = vec![-math::ln(n as f64); n];
         self.ess = n as f64;
         self.window_open_t = t;
         self.last_t = Some(t);
@@ -469,7 +470,7 @@ impl Localizer {
                 Pose2::new(x, y, th)
             })
             .collect();
-        self.log_w = vec![-(n as f64).ln(); n];
+        self.log_w = vec![-math::ln(n as f64); n];
         self.ess = n as f64;
         self.window_open_t = t;
         self.step += 1;
@@ -486,7 +487,7 @@ impl Localizer {
         let mut cum = Vec::with_capacity(self.log_w.len());
         let mut acc = 0.0;
         for w in &self.log_w {
-            acc += w.exp();
+            acc += math::exp(*w);
             cum.push(acc);
         }
         let mut rng = stream(self.seed, self.step, LANE_KLD);
@@ -740,7 +741,11 @@ impl Localizer {
                     .iter()
                     .zip(&alpha)
                     .flat_map(|(lw, a)| {
-                        let la = if *a > 0.0 { a.ln() } else { f64::NEG_INFINITY };
+                        let la = if *a > 0.0 {
+                            math::ln(*a)
+                        } else {
+                            f64::NEG_INFINITY
+                        };
                         lw.iter().map(move |w| w + la)
                     })
                     .collect();

@@ -20,6 +20,7 @@
 use crate::error::LocalizeError;
 use fleetslam_core::filter::{Estimate, FastSlam};
 use fleetslam_core::log::LandmarkObservation;
+use fleetslam_core::math;
 use fleetslam_core::pose::Pose2;
 use fleetslam_core::sensor::{
     LandmarkKind, MeasurementModel, Point3Model, RangeBearingModel, SensorNoise,
@@ -324,7 +325,7 @@ impl<'a> Scorer<'a> {
         let radius =
             (dr + (b * (index.max_trace + rmax * rmax * q2[(1, 1)])).sqrt()) * (1.0 + 1e-9) + 1e-9;
         let a = pose.theta + z[1];
-        let p = [pose.x + z[0] * a.cos(), pose.y + z[0] * a.sin()];
+        let p = [pose.x + z[0] * math::cos(a), pose.y + z[0] * math::sin(a)];
         index
             .near(p, radius)
             .filter_map(|i| self.landmark_ll(pose, z, &self.map.landmarks[i].gaussian))
@@ -384,7 +385,7 @@ impl<'a> Scorer<'a> {
         let tr = l.cov[0] + l.cov[3] + l.cov[5];
         match self.map.kind {
             LandmarkKind::RangeBearing2d => {
-                let r = (l.mean[0] - pose.x).hypot(l.mean[1] - pose.y);
+                let r = math::hypot(l.mean[0] - pose.x, l.mean[1] - pose.y);
                 let nr = z[0] - r;
                 let q2 = self.q2_at(z);
                 if nr * nr > bound * (tr + q2[(0, 0)]) {
@@ -443,8 +444,8 @@ impl<'a> Scorer<'a> {
     /// The [floor](Self::floor) of reading `z`, whose range sets its range noise.
     pub fn floor_at(&self, z: &[f64; 3]) -> f64 {
         let (dim, logdet) = match self.map.kind {
-            LandmarkKind::RangeBearing2d => (2, self.q2_at(z).determinant().ln()),
-            LandmarkKind::Point3d => (3, self.q3.determinant().ln()),
+            LandmarkKind::RangeBearing2d => (2, math::ln(self.q2_at(z).determinant())),
+            LandmarkKind::Point3d => (3, math::ln(self.q3.determinant())),
         };
         gaussian_log_density(self.params.outlier_mahalanobis2, logdet, dim)
     }
@@ -461,7 +462,7 @@ fn gaussian_ll<const D: usize, M: MeasurementModel<D>>(
 ) -> Option<f64> {
     let s = hm * M::cov(l) * hm.transpose() + q;
     let (inv, det) = M::inverse_det(&s)?;
-    Some(gaussian_log_density(nu.dot(&(inv * nu)), det.ln(), D))
+    Some(gaussian_log_density(nu.dot(&(inv * nu)), math::ln(det), D))
 }
 
 #[cfg(test)]

@@ -22,6 +22,7 @@
 //! the sums and normalisations of eq. 6 run over the groups, which lowers the variance of
 //! the gradient and the bias from the different dynamics of the sample sets.
 
+use fleetslam_core::math;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 
@@ -190,7 +191,7 @@ pub fn grouped_beliefs(ll: &[Vec<f64>], group: &[usize]) -> GroupedBeliefs {
             }
             return out;
         }
-        let w: Vec<f64> = logs.iter().map(|l| (l - max).exp()).collect();
+        let w: Vec<f64> = logs.iter().map(|l| math::exp(l - max)).collect();
         let total: f64 = w.iter().sum();
         for (wm, &g) in w.iter().zip(group) {
             out[g] += wm / total;
@@ -217,7 +218,7 @@ pub fn kl_criterion(b: &GroupedBeliefs, alpha: &[f64]) -> f64 {
             if mix <= 0.0 {
                 0.0
             } else {
-                mix * ((mix + MASS_FLOOR) / (b.full[g] + MASS_FLOOR)).ln()
+                mix * math::ln((mix + MASS_FLOOR) / (b.full[g] + MASS_FLOOR))
             }
         })
         .sum()
@@ -235,7 +236,7 @@ pub fn kl_gradient(b: &GroupedBeliefs, alpha: &[f64]) -> Vec<f64> {
     let terms: Vec<f64> = (0..b.full.len())
         .map(|g| {
             let mix: f64 = alpha.iter().zip(&b.comp).map(|(a, c)| a * c[g]).sum();
-            ((mix + MASS_FLOOR) / (b.full[g] + MASS_FLOOR)).ln() + mix / (mix + MASS_FLOOR)
+            math::ln((mix + MASS_FLOOR) / (b.full[g] + MASS_FLOOR)) + mix / (mix + MASS_FLOOR)
         })
         .collect();
     b.comp
@@ -400,7 +401,7 @@ mod tests {
     /// and an uninformative reading. The beliefs are exact per cell.
     const CELLS: usize = 200;
     fn likelihoods(x: f64) -> [f64; 3] {
-        let g = |m: f64, s: f64| (-0.5 * ((x - m) / s).powi(2)).exp();
+        let g = |m: f64, s: f64| math::exp(-0.5 * ((x - m) / s).powi(2));
         [
             g(4.7, 0.6) + 0.05 * g(14.7, 0.6) + 1e-3,
             g(5.2, 0.4) + 0.05 * g(15.2, 0.4) + 1e-3,
@@ -525,7 +526,7 @@ mod tests {
             .map(|_| rand::Rng::random::<f64>(&mut rng) * CELLS as f64 * 0.1)
             .collect();
         let ll: Vec<Vec<f64>> = (0..3)
-            .map(|i| xs.iter().map(|&x| likelihoods(x)[i].ln()).collect())
+            .map(|i| xs.iter().map(|&x| math::ln(likelihoods(x)[i])).collect())
             .collect();
         let group: Vec<usize> = xs
             .iter()

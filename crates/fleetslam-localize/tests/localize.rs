@@ -3,8 +3,10 @@
 
 use fleetslam_core::config::FilterConfig;
 use fleetslam_core::log::{LandmarkObservation, Record};
+use fleetslam_core::math;
 use fleetslam_core::motion::{Motion, MotionModel, MotionNoise};
 use fleetslam_core::pose::{Pose2, PoseGaussian, wrap_angle};
+use fleetslam_core::rng::StandardNormal;
 use fleetslam_core::rng::chacha_stream as stream;
 use fleetslam_core::sensor::{LandmarkKind, SensorNoise, range_bearing_predict};
 use fleetslam_core::updater::LandmarkGaussian;
@@ -14,7 +16,6 @@ use fleetslam_localize::{
     LandmarkSet, LateJoinSlam, LocalizeConfig, Localizer, Models, Phase, Policy,
 };
 use rand::Rng;
-use rand_distr::StandardNormal;
 
 const SENSOR: SensorNoise = SensorNoise {
     range: 0.1,
@@ -96,8 +97,8 @@ fn circle_robot(
     let dt = 0.5;
     let w = v / r;
     let mut pose = Pose2::new(
-        c[0] + r * phase.cos(),
-        c[1] + r * phase.sin(),
+        c[0] + r * math::cos(phase),
+        c[1] + r * math::sin(phase),
         wrap_angle(phase + std::f64::consts::FRAC_PI_2),
     );
     let mut recs = Vec::new();

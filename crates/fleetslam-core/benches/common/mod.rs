@@ -4,6 +4,7 @@
 
 use fleetslam_core::filter::ParticleState;
 use fleetslam_core::log::{LandmarkObservation, Record};
+use fleetslam_core::math;
 use fleetslam_core::motion::Motion;
 use fleetslam_core::pose::wrap_angle;
 use fleetslam_core::{FastSlam, FilterConfig, Pose2, PoseGaussian};
@@ -81,7 +82,7 @@ pub fn shared_filter(particles: usize, m: usize) -> FastSlam {
     let ancestor = s.particles.pop().expect("one particle");
     s.particles = vec![
         ParticleState {
-            log_w: -(particles as f64).ln(),
+            log_w: -math::ln(particles as f64),
             ..ancestor
         };
         particles

@@ -5,6 +5,7 @@ use super::{Action, StepCtx};
 use crate::config::{Association, FilterConfig};
 use crate::linalg::{mul, sandwich};
 use crate::map::{INDEX_WIDE_TRACE, LandmarkMap};
+use crate::math;
 use crate::pose::Pose2;
 use crate::sensor::{LandmarkKind, MeasurementModel, range_bearing_inverse};
 use crate::stats::gaussian_log_density;
@@ -64,7 +65,7 @@ pub(super) fn match_ll<const D: usize, M: MeasurementModel<D>>(
     let (s_inv, det) = M::inverse_det(&s)?;
     let nu = M::innovation(z, &zhat);
     let m2 = nu.dot(&mul(&s_inv, &nu));
-    let ll = gaussian_log_density(m2, det.ln(), D);
+    let ll = gaussian_log_density(m2, math::ln(det), D);
     (m2.is_finite() && ll.is_finite()).then_some((m2, ll))
 }
 

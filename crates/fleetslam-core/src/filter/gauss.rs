@@ -4,10 +4,10 @@
 
 use crate::linalg::mul;
 use crate::pose::{Pose2, wrap_angle};
+use crate::rng::StandardNormal;
 use crate::rng::Stream;
 use nalgebra::{Matrix3, Vector3};
 use rand::Rng;
-use rand_distr::StandardNormal;
 
 #[inline]
 pub(super) fn normal3(rng: &mut Stream) -> Vector3<f64> {
@@ -60,7 +60,7 @@ pub(super) fn upper3(m: &Matrix3<f64>) -> [f64; 6] {
     [m[(0, 0)], s(0, 1), s(0, 2), m[(1, 1)], s(1, 2), m[(2, 2)]]
 }
 
-/// Jacobian of `prev ⊕ inc` with respect to `prev`, given `prev.theta.sin_cos()`.
+/// Jacobian of `prev ⊕ inc` with respect to `prev`, given `math::sin_cos(prev.theta)`.
 #[inline]
 pub(super) fn compose_jacobian((s, c): (f64, f64), inc: &Pose2) -> Matrix3<f64> {
     Matrix3::new(
@@ -117,6 +117,7 @@ mod tests {
     use super::*;
     use crate::linalg::sandwich;
     use crate::linalg::testing::{entry, same_but_zero_sign};
+    use crate::math;
     use crate::rng::stream;
     use proptest::prelude::*;
     use rand::Rng;
@@ -128,7 +129,7 @@ mod tests {
             theta in prop_oneof![Just(0.0), -4.0..4.0f64], inc in proptest::array::uniform3(entry()),
             p in proptest::array::uniform6(entry()),
         ) {
-            let sc = theta.sin_cos();
+            let sc = math::sin_cos(theta);
             let inc = Pose2::new(inc[0], inc[1], inc[2]);
             let full = sandwich(&compose_jacobian(sc, &inc), &sym3(&p));
             let got = compose_sandwich(sc, &inc, &p);

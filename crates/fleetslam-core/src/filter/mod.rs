@@ -57,6 +57,7 @@ use crate::config::{
 };
 use crate::log::Record;
 use crate::map::LandmarkMap;
+use crate::math;
 use crate::motion::Motion;
 use crate::pose::{
     Pose2, PoseGaussian, PositionHeading, weighted_mean_pose, weighted_mean_pose_sc, wrap_angle,
@@ -354,7 +355,7 @@ fn range_bearing_noise(
 ) -> (Matrix2<f64>, f64) {
     if noise.range_per_m > 0.0 {
         let q = noise.q2_at(r);
-        let clutter = association.clutter_at(derived.new_landmark_2d, 2, q.determinant().ln());
+        let clutter = association.clutter_at(derived.new_landmark_2d, 2, math::ln(q.determinant()));
         (q, clutter)
     } else {
         (noise.q2(), constant_clutter)
@@ -365,15 +366,15 @@ impl Derived {
     fn of(cfg: &FilterConfig) -> Self {
         let dim = cfg.landmark_kind.dim();
         let q_logdet = match cfg.landmark_kind {
-            LandmarkKind::RangeBearing2d => cfg.sensor_noise.q2().determinant().ln(),
-            LandmarkKind::Point3d => cfg.sensor_noise.q3().determinant().ln(),
+            LandmarkKind::RangeBearing2d => math::ln(cfg.sensor_noise.q2().determinant()),
+            LandmarkKind::Point3d => math::ln(cfg.sensor_noise.q3().determinant()),
         };
         let a = &cfg.association_params;
         Self {
             gate: a.gate_for(dim),
             new_landmark: a.new_landmark_for(dim),
             clutter: a.clutter_for(dim, q_logdet),
-            sighting_clutter: a.clutter_for(2, cfg.sighting_noise.q2().determinant().ln()),
+            sighting_clutter: a.clutter_for(2, math::ln(cfg.sighting_noise.q2().determinant())),
             new_landmark_2d: a.new_landmark_for(2),
         }
     }
@@ -473,7 +474,7 @@ impl FastSlam {
         let particles = (0..n)
             .map(|_| Particle {
                 map: new_map(config.association),
-                log_w: -(n as f64).ln(),
+                log_w: -math::ln(n as f64),
             })
             .collect();
         Ok(Self {
@@ -892,9 +893,9 @@ impl FastSlam {
         let mut rng = stream(self.config.seed, self.step, LANE_RESAMPLE);
         let idx = systematic_weights(&self.weights, &mut rng);
         let n = self.particles.len();
-        let uniform = -(n as f64).ln();
+        let uniform = -math::ln(n as f64);
         self.weights.clear();
-        self.weights.resize(n, uniform.exp());
+        self.weights.resize(n, math::exp(uniform));
         for h in self.headings.iter_mut().filter(|h| h.len() == n) {
             *h = idx.iter().map(|&i| h[i]).collect();
         }
@@ -974,7 +975,7 @@ impl FastSlam {
     fn weight(&self, i: usize) -> f64 {
         match self.weights.get(i) {
             Some(&w) if self.weights.len() == self.particles.len() => w,
-            _ => self.particles[i].log_w.exp(),
+            _ => math::exp(self.particles[i].log_w),
         }
     }
 
@@ -1343,7 +1344,7 @@ mod tests {
                 f.particles()
                     .iter()
                     .zip(&f.robot_particles()[r].poses)
-                    .map(|(p, pose)| (pose, p.log_w.exp())),
+                    .map(|(p, pose)| (pose, math::exp(p.log_w))),
             )
         };
         let mut resampled = [false, false];

@@ -7,14 +7,15 @@ use super::{Action, StepCtx};
 use crate::config::OdometryCalibration;
 use crate::linalg::{kalman_posterior_cov, mul, mul_t, sandwich};
 use crate::map::{Landmark, LandmarkMap};
+use crate::math;
 use crate::motion::scale_increment;
 use crate::pose::{Pose2, wrap_angle};
+use crate::rng::StandardNormal;
 use crate::rng::{LANE_CALIBRATION, Stream, stream};
 use crate::sensor::{MeasurementModel, RangeBearingModel};
 use crate::stats::{MixtureLogSum, gaussian_log_density, log_add_exp};
 use nalgebra::{Matrix2, Matrix2x3, Matrix3, SMatrix, Vector2, Vector3};
 use rand::Rng;
-use rand_distr::StandardNormal;
 
 /// Log-likelihood of a sighting `z` (range, bearing) of robot `other` from `pose` (pose
 /// covariance `pr`) in the particle of index `particle`, where `other` stands at its pose
@@ -40,7 +41,7 @@ pub(super) fn sighting_marginal(
     let s = qs + sandwich(&hm, &ptp) + sandwich(&hx, pr);
     let (s_inv, det) = RangeBearingModel::inverse_det(&s)?;
     let nu = RangeBearingModel::innovation(&[z[0], z[1], 0.0], &zhat);
-    let ll = gaussian_log_density(nu.dot(&mul(&s_inv, &nu)), det.ln(), 2);
+    let ll = gaussian_log_density(nu.dot(&mul(&s_inv, &nu)), math::ln(det), 2);
     ll.is_finite().then_some((ll, hx, s_inv, nu))
 }
 

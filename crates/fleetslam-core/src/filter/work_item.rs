@@ -13,6 +13,7 @@ use crate::ekf_lanes::LANES;
 use crate::log::SensorRange;
 use crate::map::Landmark;
 use crate::map::{LandmarkMap, LandmarkMut};
+use crate::math;
 use crate::motion::{covariance_in_world_sc, scale_increment};
 use crate::pose::{Pose2, PositionHeading, wrap_angle};
 use crate::rng::Stream;
@@ -781,7 +782,7 @@ impl View {
             max_range: range.max_range,
             r2: range.max_range * range.max_range,
             half,
-            cos_half: half.cos(),
+            cos_half: math::cos(half),
             theta: 0.0,
             sin: 0.0,
             cos: 1.0,
@@ -792,7 +793,7 @@ impl View {
     /// The same view from heading `theta` (what depends on the range and the field is kept).
     #[inline(always)]
     fn facing(&self, theta: f64) -> Self {
-        let (sin, cos) = theta.sin_cos();
+        let (sin, cos) = math::sin_cos(theta);
         Self {
             theta,
             sin,
@@ -804,7 +805,8 @@ impl View {
     /// The definition: within the range (`hypot`) and the field of view (the bearing's
     /// `atan2`, wrapped, against half the field).
     fn contains_by_definition(&self, dx: f64, dy: f64) -> bool {
-        dx.hypot(dy) < self.max_range && wrap_angle(dy.atan2(dx) - self.theta).abs() < self.half
+        math::hypot(dx, dy) < self.max_range
+            && wrap_angle(math::atan2(dy, dx) - self.theta).abs() < self.half
     }
 
     /// The definition's decision by products, `None` within [`VIEW_EDGE_BAND`] of an edge of
@@ -924,7 +926,7 @@ mod tests {
                 2 => (w * max_range, nudge(v.half)),
                 _ => (w * max_range, -nudge(v.half)),
             };
-            let (dx, dy) = (r * (theta + b).cos(), r * (theta + b).sin());
+            let (dx, dy) = (r * math::cos(theta + b), r * math::sin(theta + b));
             let d2 = dx * dx + dy * dy;
             if let Some(decided) = v.by_products(dx, dy, d2) {
                 prop_assert_eq!(decided, v.contains_by_definition(dx, dy), "{} {}", dx, dy);
@@ -939,7 +941,7 @@ mod tests {
     fn the_products_decide_away_from_the_edges() {
         let v = view(30.0, std::f64::consts::PI, 0.3);
         let at = |r: f64, b: f64| {
-            let (dx, dy) = (r * (0.3 + b).cos(), r * (0.3 + b).sin());
+            let (dx, dy) = (r * math::cos(0.3 + b), r * math::sin(0.3 + b));
             v.by_products(dx, dy, dx * dx + dy * dy)
         };
         assert_eq!(at(10.0, 0.0), Some(true));

@@ -645,6 +645,7 @@ pub fn import_mrclam(dir: &Path, opts: &MrclamOptions) -> Result<Imported, Impor
 #[cfg(test)]
 mod tests {
     use super::*;
+    use fleetslam_core::math;
     use fleetslam_core::motion::AckermannParams;
     use std::sync::OnceLock;
 
@@ -797,7 +798,7 @@ mod tests {
         }
         assert!(until - t < 0.2 + 1e-6);
         let (x, y) = position_at(&imp.truth.trajectories["1"], t).expect("truth at t");
-        let err = (pose.x - x).hypot(pose.y - y);
+        let err = math::hypot(pose.x - x, pose.y - y);
         println!("robot 1 after 30 s of motion: dead reckoning is {err:.3} m from Vicon");
         assert!(
             err < 0.5,

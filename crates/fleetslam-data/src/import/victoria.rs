@@ -48,6 +48,7 @@ use crate::formats::{TrajectoryPoint, Truth};
 use fleetslam_core::log::{
     LOG_VERSION, LandmarkObservation, Log, LogHeader, RobotStart, SensorRange,
 };
+use fleetslam_core::math;
 use fleetslam_core::motion::{AckermannParams, Motion, MotionModel, MotionNoise};
 use fleetslam_core::pose::{Pose2, PoseGaussian};
 use fleetslam_core::sensor::{LandmarkKind, SensorNoise};
@@ -138,8 +139,8 @@ fn gps_trajectory(fixes: &[(f64, f64, f64)], moving: impl Fn(f64) -> bool) -> Ve
                 .last()
                 .unwrap_or(&fixes[i]);
             let (dx, dy) = (after.1 - before.1, after.2 - before.2);
-            if dx.hypot(dy) >= HEADING_MIN_TRAVEL {
-                heading = dy.atan2(dx);
+            if math::hypot(dx, dy) >= HEADING_MIN_TRAVEL {
+                heading = math::atan2(dy, dx);
             }
         }
         out.push(TrajectoryPoint {
@@ -378,11 +379,11 @@ fn check_start_frame(fixes: &[(f64, f64, f64)], report: &mut ImportReport) {
     let Some(&(t, x, y)) = fixes.first() else {
         return;
     };
-    let offset = x.hypot(y);
+    let offset = math::hypot(x, y);
     let away = fixes
         .iter()
-        .find(|f| (f.1 - x).hypot(f.2 - y) >= TRAVEL)
-        .map(|f| ((f.2 - y).atan2(f.1 - x), f.0));
+        .find(|f| math::hypot(f.1 - x, f.2 - y) >= TRAVEL)
+        .map(|f| (math::atan2(f.2 - y, f.1 - x), f.0));
     let travel = away.map_or_else(
         || format!("the car never moves {TRAVEL} m"),
         |(h, tt)| format!("direction of travel over the first {TRAVEL} m (by t = {tt:.1} s) is {h:+.3} rad ({:+.1} deg)", h.to_degrees()),
@@ -488,7 +489,7 @@ mod tests {
             a.pose.x + s * (b.pose.x - a.pose.x),
             a.pose.y + s * (b.pose.y - a.pose.y),
         );
-        let err = (pose.x - gx).hypot(pose.y - gy);
+        let err = math::hypot(pose.x - gx, pose.y - gy);
         println!(
             "at t = {t:.3} s: dead reckoning ({:.2}, {:.2}), GPS ({gx:.2}, {gy:.2}), {err:.2} m apart",
             pose.x, pose.y

@@ -13,10 +13,11 @@
 //!
 //! These functions are the `libm` crate's (a Rust port of FreeBSD's msun), which compute
 //! with plain IEEE-754 operations and give the same bits wherever they run; `exp`, the
-//! filter's most frequent, is a table method of our own on the same operations. The crates that
-//! compute the filter's results (this one, `fleetslam-data`, `fleetslam-localize`) call
-//! these and never the standard library's: their `clippy.toml` disallows the `f64` methods,
-//! and `tests/determinism.rs` runs a filter under the tunable above and compares its bits.
+//! filter's most frequent, is a table method of our own on the same operations. The
+//! crates that compute the filter's results (this one, `fleetslam-data`,
+//! `fleetslam-localize`) call these and never the standard library's: their `clippy.toml`
+//! disallows the `f64` methods, and `tests/determinism.rs` runs filters under the tunable
+//! above and compares their bits.
 //! `sqrt`, `abs`, `mul_add`, `powi` and the arithmetic are exact or compiled inline, the
 //! same everywhere, and stay the standard library's.
 

@@ -302,9 +302,73 @@ fn case_setup(
     (sim, cfg)
 }
 
+/// The cases [`the_c_librarys_cpu_variants_change_no_bit`] also runs with the learned
+/// updater (its measurement frame computes logarithms, exponentials and rotations of its
+/// own, in both measurement models).
+const LEARNED_CASES: [(LandmarkKind, bool, FastSlamVersion, Option<f64>); 2] = [
+    (
+        LandmarkKind::RangeBearing2d,
+        true,
+        FastSlamVersion::V2,
+        None,
+    ),
+    (LandmarkKind::Point3d, false, FastSlamVersion::V1, None),
+];
+
+/// A learned updater's model with seeded weights instead of trained ones (small, tanh
+/// hidden layers, the `line_of_sight` layout): the bits a filter gets from it depend on the
+/// updater's arithmetic, not on how good the network is, and it needs no training (burn).
+fn seeded_model(
+    kind: LandmarkKind,
+    noise: fleetslam_core::sensor::SensorNoise,
+    id: &str,
+) -> fleetslam_learned::MlpModel {
+    use fleetslam_learned::model::{DenseLayer, MODEL_FORMAT, MODEL_FORMAT_VERSION, Normalization};
+    use fleetslam_learned::{Activation, InputLayout};
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+    let layout = InputLayout::LineOfSight;
+    let (n_in, n_out) = layout.dims(kind);
+    let widths = [n_in, 12, 12, n_out];
+    let layers = widths
+        .windows(2)
+        .map(|w| DenseLayer {
+            inputs: w[0],
+            outputs: w[1],
+            weights: (0..w[0] * w[1])
+                .map(|_| rng.random_range(-0.3..0.3))
+                .collect(),
+            bias: (0..w[1]).map(|_| rng.random_range(-0.1..0.1)).collect(),
+        })
+        .collect();
+    let unit = |n: usize| Normalization {
+        mean: vec![0.0; n],
+        std: vec![1.0; n],
+        min: Vec::new(),
+        max: Vec::new(),
+    };
+    fleetslam_learned::MlpModel {
+        format: MODEL_FORMAT.into(),
+        format_version: MODEL_FORMAT_VERSION,
+        id: id.into(),
+        kind,
+        layout,
+        layout_version: InputLayout::VERSION,
+        preset: "seeded".into(),
+        noise,
+        activation: Activation::Tanh,
+        covariance: Default::default(),
+        input_norm: unit(n_in),
+        output_norm: unit(n_out),
+        layers,
+        metadata: serde_json::Value::Null,
+    }
+}
+
 /// What [`the_c_librarys_cpu_variants_change_no_bit`] compares between two processes: a
-/// hash of each simulated log, filter state and trajectory of [`CASES`] and of a robot that
-/// joins a simulated run at an unknown pose (the localizer), one line each; and a last line
+/// hash of each simulated log, filter state and trajectory of [`CASES`], of
+/// [`LEARNED_CASES`] with the learned updater and of a robot that joins a simulated run at
+/// an unknown pose (the localizer), one line each; and a last line
 /// with the hash of the C library's own `exp` over 200,000 arguments.
 fn digests() -> Vec<String> {
     use std::hash::{DefaultHasher, Hash, Hasher};
@@ -350,6 +414,22 @@ fn digests() -> Vec<String> {
         hash(&state_text(&run.slam().snapshot())),
         hash(&format!("{:?}", out.estimate.trajectories))
     ));
+    for case in LEARNED_CASES {
+        let (sim, mut cfg) = case_setup(case);
+        cfg.updater = "seeded".into();
+        let model = seeded_model(cfg.landmark_kind, cfg.sensor_noise, &cfg.updater);
+        let mlp = fleetslam_learned::MlpUpdater::for_run(model, &cfg).unwrap();
+        let (state, traj) = run_filter(
+            FastSlam::with_updater(cfg, Arc::new(mlp)).unwrap(),
+            &sim.log,
+        );
+        assert!(state.stats.landmark_updates > 0 && state.stats.resamples > 0);
+        lines.push(format!(
+            "{case:?} with the learned updater: state {} trajectories {}",
+            hash(&state_text(&state)),
+            hash(&traj)
+        ));
+    }
     let glibc: String = (0..200_000)
         .map(|k| format!("{:x}", (k as f64 * 1e-4 - 10.0).exp().to_bits()))
         .collect();
@@ -362,7 +442,9 @@ fn digests() -> Vec<String> {
 /// differently from its baseline, so the filter computes with `fleetslam_core::math`
 /// (libm) instead. A child process of this test, with
 /// `GLIBC_TUNABLES=glibc.cpu.hwcaps=-AVX2,-FMA` (glibc's baseline functions), simulates and
-/// filters [`CASES`] and a late joiner and must give this process's bits; that its C
+/// filters [`CASES`], [`LEARNED_CASES`] with the learned updater and a late joiner and must
+/// give this process's bits (the learned updater's `f64` functions from the standard
+/// library gave other bits in both of its cases); that its C
 /// library's `exp` does give other bits shows that the tunable took effect (on x86-64 with
 /// FMA, as the test machines are).
 #[test]

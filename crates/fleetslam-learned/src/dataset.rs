@@ -4,6 +4,7 @@
 use crate::LearnedError;
 use crate::frame::{Frame, InputLayout, frame2, frame3, paper_features, paper_targets};
 use crate::row::TrainingRow;
+use fleetslam_core::math;
 use fleetslam_core::sensor::{LandmarkKind, SensorNoise};
 use fleetslam_core::updater::{LandmarkGaussian, LandmarkUpdater, UpdateNeeds};
 use rand::SeedableRng;
@@ -426,10 +427,11 @@ pub fn synthetic_rows_biased(
 ) -> Vec<TrainingRow> {
     use fleetslam_core::ekf::EkfUpdater;
     use fleetslam_core::pose::Pose2;
+    use fleetslam_core::rng::StandardNormal;
     use fleetslam_core::sensor::{point3_predict, range_bearing_predict};
     use fleetslam_core::updater::UpdateInput;
     use rand::Rng;
-    use rand_distr::{Distribution, StandardNormal};
+    use rand::distr::Distribution;
     let ekf = EkfUpdater::new(kind, noise);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let g = |rng: &mut rand_chacha::ChaCha8Rng| -> f64 { StandardNormal.sample(rng) };
@@ -444,10 +446,14 @@ pub fn synthetic_rows_biased(
         let b: f64 = rng.random_range(-1.5..1.5);
         let z0 = match kind {
             LandmarkKind::RangeBearing2d => [r, b, 0.0],
-            LandmarkKind::Point3d => [r * b.cos(), r * b.sin(), rng.random_range(0.2..2.0)],
+            LandmarkKind::Point3d => [
+                r * math::cos(b),
+                r * math::sin(b),
+                rng.random_range(0.2..2.0),
+            ],
         };
         let mut prior = ekf.initialize(&pose, &z0);
-        let scale = (rng.random_range(0.02f64.ln()..2.0f64.ln())).exp();
+        let scale = math::exp(rng.random_range(math::ln(0.02)..math::ln(2.0)));
         prior.cov.iter_mut().for_each(|c| *c *= scale);
         // The true landmark, drawn from the prior.
         let chol = match kind {

@@ -19,6 +19,7 @@
 //! FastSLAM stays a proper particle filter whatever the network predicts), and lets the
 //! network predict the landmark's posterior.
 
+use fleetslam_core::math;
 use fleetslam_core::pose::wrap_angle;
 use fleetslam_core::sensor::{LandmarkKind, SensorNoise, bearing_atan2};
 use fleetslam_core::updater::{LandmarkGaussian, UpdateInput};
@@ -179,7 +180,7 @@ pub(crate) fn frame2(inp: &UpdateInput, noise: &SensorNoise) -> Option<Frame<2>>
 /// The 3D point frame (the robot frame).
 #[inline]
 pub(crate) fn frame3(inp: &UpdateInput, noise: &SensorNoise) -> Frame<3> {
-    let (s, c) = inp.pose.theta.sin_cos();
+    let (s, c) = math::sin_cos(inp.pose.theta);
     let t = SMatrix::<f64, 3, 3>::new(c, s, 0.0, -s, c, 0.0, 0.0, 0.0, 1.0);
     let sigma = t * cov3(&inp.prior.cov) * t.transpose();
     let m = &inp.prior.mean;
@@ -218,7 +219,7 @@ impl<const D: usize> Frame<D> {
         let (ll, m2) = if likelihood {
             let det = chol.determinant();
             let m2 = self.nu.dot(&(s_inv * self.nu));
-            let ll = gaussian_log_density(m2, det.ln(), D) + self.ll_scale.ln();
+            let ll = gaussian_log_density(m2, math::ln(det), D) + math::ln(self.ll_scale);
             (ll, m2)
         } else {
             (f64::NAN, f64::NAN)
@@ -298,7 +299,7 @@ impl<const D: usize> Frame<D> {
     pub fn prior_features(&self, s: &SVector<f64, D>, out: &mut [f64]) -> usize {
         let mut k = 0;
         for i in 0..D {
-            out[k] = 0.5 * (self.sigma[(i, i)].max(1e-300) / self.q[i]).ln();
+            out[k] = 0.5 * math::ln(self.sigma[(i, i)].max(1e-300) / self.q[i]);
             k += 1;
         }
         for i in 0..D {
@@ -326,7 +327,7 @@ impl<const D: usize> Frame<D> {
     pub fn los_range_features(&self, s: &SVector<f64, D>, out: &mut [f64]) {
         self.los_features(s, out);
         let k = D + D * (D - 1) / 2 + D;
-        out[k] = self.dist.max(MIN_FEATURE_DISTANCE).ln();
+        out[k] = math::ln(self.dist.max(MIN_FEATURE_DISTANCE));
     }
 
     /// The gain targets: `K̃ᵢⱼ = Kᵢⱼ uⱼ/sᵢ` of `K = Σ S⁻¹` (row-major; `s` the prior standard
@@ -408,7 +409,7 @@ fn scaled_cholesky_targets<const D: usize>(
     let l = scaled.cholesky()?.l();
     let mut k = 0;
     for i in 0..D {
-        out[k] = l[(i, i)].ln();
+        out[k] = math::ln(l[(i, i)]);
         k += 1;
     }
     for i in 0..D {
@@ -430,7 +431,7 @@ fn scaled_cholesky_targets<const D: usize>(
 fn scaled_cholesky_decode<const D: usize>(s: &SVector<f64, D>, out: &[f64]) -> SMatrix<f64, D, D> {
     let mut l = SMatrix::<f64, D, D>::zeros();
     for i in 0..D {
-        l[(i, i)] = out[i].clamp(-20.0, 20.0).exp();
+        l[(i, i)] = math::exp(out[i].clamp(-20.0, 20.0));
     }
     let mut k = D;
     for i in 0..D {

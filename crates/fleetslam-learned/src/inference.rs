@@ -331,6 +331,7 @@ pub(crate) fn closed_form_update<const D: usize>(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use fleetslam_core::math;
     use fleetslam_core::sensor::SensorNoise;
     use rand::{Rng, SeedableRng};
 
@@ -369,9 +370,11 @@ mod tests {
                 let b: f64 = rng.random_range(-1.5..1.5);
                 let z0 = match kind {
                     LandmarkKind::RangeBearing2d => [r, b, 0.0],
-                    LandmarkKind::Point3d => {
-                        [r * b.cos(), r * b.sin(), rng.random_range(-1.0..1.0)]
-                    }
+                    LandmarkKind::Point3d => [
+                        r * math::cos(b),
+                        r * math::sin(b),
+                        rng.random_range(-1.0..1.0),
+                    ],
                 };
                 let mut prior = ekf.initialize(&pose, &z0);
                 let s = rng.random_range(0.05..3.0);
@@ -444,7 +447,7 @@ mod tests {
         assert!((wide[(0, 0)] - f.sigma[(0, 0)]).abs() < 1e-12 * f.sigma[(0, 0)]);
         // A narrower posterior passes unchanged: L = diag(e^-1, e^-2), L_ba = 0.1.
         let (_, narrow) = f.los_decode(&s, &[0.0, 0.0, -1.0, -2.0, 0.1]);
-        let (a, b) = ((-1.0f64).exp(), (-2.0f64).exp());
+        let (a, b) = (math::exp(-1.0), math::exp(-2.0));
         assert!((narrow[(0, 0)] - a * a * s[0] * s[0]).abs() < 1e-15);
         assert!((narrow[(1, 1)] - (b * b + 0.01) * s[1] * s[1]).abs() < 1e-15);
         assert!((narrow[(1, 0)] - 0.1 * a * s[0] * s[1]).abs() < 1e-15);

@@ -338,7 +338,7 @@ mod tests {
                         if li + 1 < m.layers.len() {
                             *out = match act {
                                 Activation::Relu => out.max(0.0),
-                                Activation::Tanh => out.tanh(),
+                                Activation::Tanh => libm::tanh(*out),
                                 Activation::Identity => *out,
                             };
                         }

@@ -27,6 +27,7 @@
 
 use crate::row::TrainingRow;
 use fleetslam_core::log::Log;
+use fleetslam_core::math;
 use fleetslam_core::pose::{Pose2, wrap_angle};
 use fleetslam_core::sensor::LandmarkKind;
 use serde::{Deserialize, Serialize};
@@ -72,9 +73,13 @@ fn key(kind: LandmarkKind, z: &[f64]) -> [u64; 3] {
 fn measure(kind: LandmarkKind, pose: &Pose2, m: &[f64; 3]) -> [f64; 3] {
     let (dx, dy) = (m[0] - pose.x, m[1] - pose.y);
     match kind {
-        LandmarkKind::RangeBearing2d => [dx.hypot(dy), wrap_angle(dy.atan2(dx) - pose.theta), 0.0],
+        LandmarkKind::RangeBearing2d => [
+            math::hypot(dx, dy),
+            wrap_angle(math::atan2(dy, dx) - pose.theta),
+            0.0,
+        ],
         LandmarkKind::Point3d => {
-            let (s, c) = pose.theta.sin_cos();
+            let (s, c) = math::sin_cos(pose.theta);
             [c * dx + s * dy, -s * dx + c * dy, m[2]]
         }
     }
@@ -84,11 +89,11 @@ fn measure(kind: LandmarkKind, pose: &Pose2, m: &[f64; 3]) -> [f64; 3] {
 fn place(kind: LandmarkKind, pose: &Pose2, z: &[f64; 3]) -> [f64; 3] {
     match kind {
         LandmarkKind::RangeBearing2d => {
-            let (s, c) = (pose.theta + z[1]).sin_cos();
+            let (s, c) = math::sin_cos(pose.theta + z[1]);
             [pose.x + z[0] * c, pose.y + z[0] * s, 0.0]
         }
         LandmarkKind::Point3d => {
-            let (s, c) = pose.theta.sin_cos();
+            let (s, c) = math::sin_cos(pose.theta);
             [
                 pose.x + c * z[0] - s * z[1],
                 pose.y + s * z[0] + c * z[1],

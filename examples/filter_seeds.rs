@@ -11,7 +11,7 @@
 //! cargo run --release --example filter_seeds -- range-noise [--seeds 1-5] [--particles 100]
 //! cargo run --release --example filter_seeds -- clusters [--seeds 1-5] [--particles 200]
 //! cargo run --release --example filter_seeds -- victoria [--seeds 1] [--particles 100] \
-//!     [--duration S] [--dataset DIR]
+//!     [--duration S] [--dataset DIR] [--windows S]
 //! cargo run --release --example filter_seeds -- speed [--seeds 1] [--particles N]
 //! cargo run --release --example filter_seeds -- snapshot [--seeds 1] [--particles N] \
 //!     [--duration S]
@@ -35,7 +35,10 @@
 //! smallest distance between landmark groups) on simulations without ids whose landmarks
 //! stand in groups of 2-3 features, as MRCLAM's barcodes do, at other group spacings,
 //! sensors and motion, against the filter's default separation. `victoria` runs
-//! Victoria Park (unknown association) and prints the ATE against GPS after SE(2) alignment.
+//! Victoria Park (unknown association) and prints the ATE against GPS after SE(2) alignment;
+//! with `--windows S`, also each seed's run per S seconds: the error against GPS (after the
+//! whole run's alignment), the particles' spread, the smallest effective sample size, the
+//! resamples and the observations per record.
 //! `speed` prints the filter's cost (issue 13): wall time per particle and record and per
 //! particle and landmark observation on a simulated log with 6 or more observations per
 //! record (known ids, 100 and 1,000 particles), MRCLAM Dataset 6 with known ids at 1,000
@@ -468,6 +471,9 @@ fn main() {
                     out.metrics.landmarks_merged,
                     t.elapsed().as_secs_f64()
                 );
+                if let Some(w) = windows {
+                    victoria_windows(&imp, slam.config().clone(), &ev, w);
+                }
             }
         }
         "snapshot" => {
@@ -732,6 +738,96 @@ fn drift_windows(estimate: &Truth, truth: &Truth, w: f64) {
         }
         start = end;
     }
+}
+
+/// Runs Victoria Park again with `cfg` (the same bits as the run `ev` evaluated) and prints
+/// it per window of `w` seconds: the error against GPS after `ev`'s alignment (the whole
+/// run's SE(2) fit), the particles' largest spread about their mean position (the weighted
+/// RMS distance), the smallest effective sample size, the resamples and the landmark
+/// observations per record. An error far above the spread is a filter that is sure of a
+/// wrong pose.
+fn victoria_windows(
+    imp: &fleetslam_data::import::Imported,
+    cfg: fleetslam_core::config::FilterConfig,
+    ev: &fleetslam_data::evaluate::Evaluation,
+    w: f64,
+) {
+    let mut slam = FastSlam::new(cfg).expect("valid configuration");
+    fleetslam_data::run::add_header_robots(&mut slam, &imp.log).expect("the car starts");
+    let gps = &imp.truth.trajectories[fleetslam_data::import::victoria::ROBOT];
+    let [tx, ty, phi] = ev.transform.unwrap_or([0.0; 3]);
+    let (s, c) = fleetslam_core::math::sin_cos(phi);
+    let max_gap = EvalOptions::default().max_truth_gap;
+    println!(
+        "  window (s)  error vs GPS (m)  particle spread (m)  min ESS  resamples  observations/record"
+    );
+    /// One window's sums.
+    struct Window {
+        start: f64,
+        squared_error: f64,
+        fixes: usize,
+        spread: f64,
+        ess: f64,
+        resamples: usize,
+        records: usize,
+        observations: usize,
+    }
+    impl Window {
+        fn new(start: f64) -> Self {
+            Self {
+                start,
+                squared_error: 0.0,
+                fixes: 0,
+                spread: 0.0,
+                ess: f64::INFINITY,
+                resamples: 0,
+                records: 0,
+                observations: 0,
+            }
+        }
+        fn print(&self, t0: f64, w: f64) {
+            let error = if self.fixes > 0 {
+                format!("{:.2}", (self.squared_error / self.fixes as f64).sqrt())
+            } else {
+                "no GPS".into()
+            };
+            println!(
+                "  {:>5.0}-{:<5.0}  {error:>8}          {:>8.2}             {:>5.1}    {:>4}       {:>5.2}",
+                self.start - t0,
+                self.start + w - t0,
+                self.spread,
+                self.ess,
+                self.resamples,
+                self.observations as f64 / (self.records as f64).max(1.0)
+            );
+        }
+    }
+    let t0 = imp.log.records.first().map_or(0.0, |r| r.t);
+    let mut win = Window::new(t0);
+    for rec in &imp.log.records {
+        while rec.t >= win.start + w {
+            win.print(t0, w);
+            win = Window::new(win.start + w);
+        }
+        let report = slam.step(rec).expect("step");
+        let mean = slam.mean_pose(0);
+        let var: f64 = slam
+            .particle_sample(0, usize::MAX)
+            .iter()
+            .map(|(p, wt)| wt * ((p.x - mean.x).powi(2) + (p.y - mean.y).powi(2)))
+            .sum();
+        win.spread = win.spread.max(var.sqrt());
+        win.ess = win.ess.min(report.ess);
+        win.resamples += usize::from(report.resampled);
+        win.records += 1;
+        win.observations += rec.landmarks.len();
+        if let Some(truth) = fleetslam_data::evaluate::interpolate(gps, rec.t, max_gap) {
+            let (x, y) = (c * mean.x - s * mean.y + tx, s * mean.x + c * mean.y + ty);
+            win.squared_error += (x - truth.x).powi(2) + (y - truth.y).powi(2);
+            win.fixes += 1;
+        }
+    }
+    win.print(t0, w);
 }
 
 /// The simulated log of `speed`: 3 robots among 60 landmarks with the default sensor (6 m,

@@ -391,6 +391,13 @@ enum ImportCommand {
         /// Drop tree detections beyond this range [m].
         #[arg(long, default_value_t = 30.0)]
         max_range: f64,
+        /// GPS spike test: a fix farther from each neighbour than this speed [m/s] times
+        /// the time between them plus `--gps-jitter` is dropped from the truth (reported).
+        #[arg(long, default_value_t = VictoriaOptions::default().gps_max_speed)]
+        gps_max_speed: f64,
+        /// GPS spike test: how far [m] the GPS jumps by itself between fixes.
+        #[arg(long, default_value_t = VictoriaOptions::default().gps_jitter)]
+        gps_jitter: f64,
     },
 }
 
@@ -602,10 +609,14 @@ fn cmd_import(d: ImportCommand) -> Result<()> {
             out,
             duration,
             max_range,
+            gps_max_speed,
+            gps_jitter,
         } => {
             let opts = VictoriaOptions {
                 duration,
                 max_range,
+                gps_max_speed,
+                gps_jitter,
                 ..Default::default()
             };
             (import_victoria_park(&dir, &opts)?, out)

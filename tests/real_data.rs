@@ -183,16 +183,17 @@ fn victoria_park_unknown_association_fastslam2() {
     assert!(!out.metrics.shared_frame, "GPS has its own frame");
     let ev = evaluate(&out.estimate, &imp.truth, false, &EvalOptions::default());
     println!("{ev}\n{:?}", out.metrics);
-    // Measured: 80 landmarks, ATE against GPS 1.09 m after alignment (1.22 m before session
-    // 31's `libm` functions and normal draws).
+    // Measured: 80 landmarks, ATE against GPS 1.116 m after alignment with session 32's
+    // heading noise of 0.005 rad per metre (1.09 m with 0.02; 1.22 m before session 31's
+    // `libm` functions and normal draws).
     let n = out.estimate.landmarks.len();
-    assert!((50..120).contains(&n), "{n} landmarks");
+    assert!((65..95).contains(&n), "{n} landmarks");
     assert!(
         out.metrics.landmarks_removed > 0,
         "spurious landmarks are removed"
     );
     assert!(
-        ev.team.ate_rmse < 1.5,
+        ev.team.ate_rmse < 1.2,
         "ATE against GPS {} m",
         ev.team.ate_rmse
     );

@@ -325,22 +325,11 @@ fn seeded_model(
 ) -> fleetslam_learned::MlpModel {
     use fleetslam_learned::model::{DenseLayer, MODEL_FORMAT, MODEL_FORMAT_VERSION, Normalization};
     use fleetslam_learned::{Activation, InputLayout};
-    use rand::{Rng, SeedableRng};
+    use rand::SeedableRng;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
     let layout = InputLayout::LineOfSight;
     let (n_in, n_out) = layout.dims(kind);
-    let widths = [n_in, 12, 12, n_out];
-    let layers = widths
-        .windows(2)
-        .map(|w| DenseLayer {
-            inputs: w[0],
-            outputs: w[1],
-            weights: (0..w[0] * w[1])
-                .map(|_| rng.random_range(-0.3..0.3))
-                .collect(),
-            bias: (0..w[1]).map(|_| rng.random_range(-0.1..0.1)).collect(),
-        })
-        .collect();
+    let layers = DenseLayer::uniform_stack(&[n_in, 12, 12, n_out], 0.3, 0.1, &mut rng);
     let unit = |n: usize| Normalization {
         mean: vec![0.0; n],
         std: vec![1.0; n],

@@ -267,18 +267,7 @@ mod tests {
         let kind = LandmarkKind::RangeBearing2d;
         let layout = InputLayout::LineOfSight;
         let (n_in, n_out) = layout.dims(kind);
-        let widths = [n_in, 19, 16, n_out];
-        let layers = widths
-            .windows(2)
-            .map(|w| DenseLayer {
-                inputs: w[0],
-                outputs: w[1],
-                weights: (0..w[0] * w[1])
-                    .map(|_| rng.random_range(-1.0..1.0))
-                    .collect(),
-                bias: (0..w[1]).map(|_| rng.random_range(-0.5..0.5)).collect(),
-            })
-            .collect();
+        let layers = DenseLayer::uniform_stack(&[n_in, 19, 16, n_out], 1.0, 0.5, rng);
         let norm = |n: usize, rng: &mut dyn rand::RngCore| Normalization {
             mean: (0..n).map(|_| rng.random_range(-3.0..3.0)).collect(),
             std: (0..n).map(|_| rng.random_range(0.2..4.0)).collect(),

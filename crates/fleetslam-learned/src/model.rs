@@ -90,6 +90,30 @@ pub struct DenseLayer {
     pub bias: Vec<f32>,
 }
 
+impl DenseLayer {
+    /// Layers of an untrained network with these widths (inputs, hidden layers, outputs):
+    /// weights drawn uniformly from `(−weight, weight)` and biases from `(−bias, bias)`, for
+    /// tests that need a network's arithmetic rather than a trained one.
+    pub fn uniform_stack(
+        widths: &[usize],
+        weight: f32,
+        bias: f32,
+        rng: &mut impl rand::Rng,
+    ) -> Vec<DenseLayer> {
+        widths
+            .windows(2)
+            .map(|w| DenseLayer {
+                inputs: w[0],
+                outputs: w[1],
+                weights: (0..w[0] * w[1])
+                    .map(|_| rng.random_range(-weight..weight))
+                    .collect(),
+                bias: (0..w[1]).map(|_| rng.random_range(-bias..bias)).collect(),
+            })
+            .collect()
+    }
+}
+
 /// Per-feature standardisation: `(v − mean) / std`, and the range the training data spanned.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

@@ -122,11 +122,11 @@ impl Default for VictoriaOptions {
 /// trees (seed 1: 6.4-7.5 m about their mean at 1,000-1,100 s, 3-3.7 detections per
 /// record; 4.2-4.4 m with 0.005), and resampling there kept a wrong heading in some runs
 /// (seed 1: 30-34 m off GPS at 1,250-1,350 s; 0.9 and 0.5 m with 0.005; `filter_seeds
-/// victoria --seeds 1 --windows 50`). Over seeds 1-80 (`filter_seeds victoria --seeds 1-80`, 100 particles)
-/// the ATE against GPS went from mean 3.18 m (median 3.06, worst 10.56, 17 seeds above 4 m)
-/// to 2.62 m (2.37, 5.58, 7 above 4 m), paired t = −2.9; chosen on seeds 1-20 among 0.04,
-/// 0.01, 0.005 and 0 and confirmed on seeds 41-80, which were not looked at before (3.20 →
-/// 2.59 m).
+/// victoria --seeds 1 --windows 50`). Over seeds 1-80 (`filter_seeds victoria --seeds
+/// 1-80`, 100 particles) the ATE against GPS went from mean 3.18 m (median 3.06, worst
+/// 10.56, 17 seeds above 4 m) to 2.62 m (2.37, 5.58, 7 above 4 m), paired t = −2.9; chosen
+/// on seeds 1-20 among 0.04, 0.01, 0.005 and 0 and confirmed on seeds 41-80, which were not
+/// looked at before (3.20 → 2.59 m).
 pub fn suggested_motion_noise() -> MotionNoise {
     MotionNoise {
         trans_per_m: 0.05,
